@@ -1,0 +1,118 @@
+"""Trigonometric coefficients of the SO(3)/SE(3) formulas, exact at and near θ = 0.
+
+Every coefficient is a function of θ² only. Below ``SMALL_ANGLE_SQUARED`` it is evaluated from
+its Taylor series (Horner form, enough terms that truncation is far below float64 round-off on
+the whole branch); above, from the closed form. The branches are joined with the double-``where``
+idiom: the closed form is evaluated on a "safe" θ² (1.0 swapped into the small slots), so
+reverse-mode never sees 0/0 and gradients at θ = 0 are the series' exact ones.
+
+The threshold θ < 0.5 is large on purpose: the closed forms of ``c``, ``d`` and the SE(3)
+``q2``/``q3`` coefficients suffer cancellation (e.g. θ − sin θ) that costs up to 1e-11
+relative at θ = 0.1, while the 9-term series is exact to round-off up to θ = 0.5.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+# Taylor branch for θ² below this value (θ < 0.5); same for float32 and float64 since the
+# series is accurate to < 1e-20 there.
+SMALL_ANGLE_SQUARED = {torch.float32: 0.25, torch.float64: 0.25}
+
+_N_TERMS = 9
+
+
+def _coefficients(term) -> list[float]:
+    return [term(k) for k in range(_N_TERMS)]
+
+
+# sin θ / θ = Σ (−1)^k θ^2k / (2k+1)!
+_A = _coefficients(lambda k: (-1) ** k / math.factorial(2 * k + 1))
+# (1 − cos θ) / θ² = Σ (−1)^k θ^2k / (2k+2)!
+_B = _coefficients(lambda k: (-1) ** k / math.factorial(2 * k + 2))
+# (θ − sin θ) / θ³ = Σ (−1)^k θ^2k / (2k+3)!
+_C = _coefficients(lambda k: (-1) ** k / math.factorial(2 * k + 3))
+# (θ² + 2 cos θ − 2) / (2 θ⁴) = Σ (−1)^k θ^2k / (2k+4)!
+_Q2 = _coefficients(lambda k: (-1) ** k / math.factorial(2 * k + 4))
+# (2θ − 3 sin θ + θ cos θ) / (2 θ⁵) = Σ (−1)^k (k+1) θ^2k / (2k+5)!
+_Q3 = _coefficients(lambda k: (-1) ** k * (k + 1) / math.factorial(2 * k + 5))
+# (1 − (θ/2) cot(θ/2)) / θ² = Σ |B_2k+2| θ^2k / (2k+2)!   (Bernoulli numbers)
+_BERNOULLI_ABS = [1 / 6, 1 / 30, 1 / 42, 1 / 30, 5 / 66, 691 / 2730, 7 / 6, 3617 / 510, 43867 / 798]
+_D = [_BERNOULLI_ABS[k] / math.factorial(2 * k + 2) for k in range(_N_TERMS)]
+# atan(x) / x = Σ (−1)^k x^2k / (2k+1)
+_ATAN = _coefficients(lambda k: (-1) ** k / (2 * k + 1))
+
+
+def _horner(x: Tensor, coefficients: list[float]) -> Tensor:
+    result = torch.full_like(x, coefficients[-1])
+    for c in reversed(coefficients[:-1]):
+        result = result * x + c
+    return result
+
+
+def _split(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Return (small mask, safe θ², safe θ) for the double-where idiom."""
+    small = theta2 < SMALL_ANGLE_SQUARED[theta2.dtype]
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    return small, theta2_safe, torch.sqrt(theta2_safe)
+
+
+def sinc_coefficients(theta2: Tensor) -> tuple[Tensor, Tensor]:
+    """(a, b) = (sin θ / θ, (1 − cos θ) / θ²), the Rodrigues coefficients of seed eq. L4.1."""
+    small, t2, t = _split(theta2)
+    a = torch.sin(t) / t
+    # 2 sin²(θ/2) avoids the cancellation of 1 − cos θ.
+    b = 2.0 * torch.sin(0.5 * t) ** 2 / t2
+    return (
+        torch.where(small, _horner(theta2, _A), a),
+        torch.where(small, _horner(theta2, _B), b),
+    )
+
+
+def jacobian_coefficient_c(theta2: Tensor) -> Tensor:
+    """c = (θ − sin θ) / θ³, the [ω]×² coefficient of the SO(3) left Jacobian."""
+    small, t2, t = _split(theta2)
+    return torch.where(small, _horner(theta2, _C), (t - torch.sin(t)) / (t2 * t))
+
+
+def inverse_jacobian_coefficient_d(theta2: Tensor) -> Tensor:
+    """d = (1 − (θ/2) cot(θ/2)) / θ², the [ω]×² coefficient of the inverse left Jacobian.
+
+    Written with cot(θ/2) it is finite at θ = π (where 1 + cos θ and sin θ both vanish).
+    """
+    small, t2, t = _split(theta2)
+    half = 0.5 * t
+    closed = (1.0 - half * torch.cos(half) / torch.sin(half)) / t2
+    return torch.where(small, _horner(theta2, _D), closed)
+
+
+def se3_q_coefficients(theta2: Tensor) -> tuple[Tensor, Tensor]:
+    """(q2, q3) of Barfoot's Q(ρ, φ) block of the SE(3) left Jacobian.
+
+    q2 = (θ² + 2 cos θ − 2) / (2 θ⁴), q3 = (2θ − 3 sin θ + θ cos θ) / (2 θ⁵).
+    """
+    small, t2, t = _split(theta2)
+    s, c = torch.sin(t), torch.cos(t)
+    q2 = (t2 + 2.0 * c - 2.0) / (2.0 * t2 * t2)
+    q3 = (2.0 * t - 3.0 * s + t * c) / (2.0 * t2 * t2 * t)
+    return (
+        torch.where(small, _horner(theta2, _Q2), q2),
+        torch.where(small, _horner(theta2, _Q3), q3),
+    )
+
+
+def atan_ratio(y: Tensor, x: Tensor) -> Tensor:
+    """atan2(y, x) / y for y ≥ 0 and x > 0 near y = 0, exact at y = 0 (value 1/x).
+
+    Used by the SO(3) log: θ / sin(θ/2) = 2 · atan_ratio(|v|, w) for a quaternion (w, v).
+    """
+    r2 = (y / x) ** 2
+    # The atan series converges slowly (no factorials), so its branch is narrower; atan2 has
+    # no cancellation, only the 0/0 at y = 0 to avoid.
+    small = r2 < 1e-2
+    y_safe = torch.where(small, torch.ones_like(y), y)
+    closed = torch.atan2(y_safe, x) / y_safe
+    return torch.where(small, _horner(r2, _ATAN) / x, closed)
