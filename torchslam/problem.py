@@ -1,0 +1,549 @@
+"""The ICP-SLAM problem (seed section 1) as a batched ``nn.Module``.
+
+B independent problems, each with m poses T_i0 (world → frame i) and n world points X_j,
+observed as X_ij in frame i. Residual r_ij = X_ij − T_i0 X_j (seed eq. 1.1), cost
+
+    F = ½ Σ_e ρ(r_eᵀ Ω_e r_e)
+
+with per-observation information Ω_e (scalar weight w_e → Ω_e = w_e I; default I) and a robust
+kernel ρ (default ρ(s) = s). The ½ follows Ceres, scipy and GTSAM; the seed's Σ‖r‖² has the
+same minimizer.
+
+Poses are kept as se(3) tangent parameters ξ_i = (ω, v) (``pose_tangent``, an
+``nn.Parameter`` of shape (B, m, 6)); T_i0 = Exp(ξ_i). The solver updates them on the
+manifold, T ← T·Exp(δ) (seed eq. L1), never T − δT. Points are an ``nn.Parameter`` (B, n, 3)
+updated in Euclidean space.
+
+Observations are stored once, as padded edge lists of length E (memory O(E), not O(m·n)):
+``pose_index`` (B, E), ``point_index`` (B, E), ``observations`` (B, E, 3) and ``valid``
+(B, E) (False for padding). :meth:`PointMapProblem.from_dense` converts the dense
+(B, m, n, 3) + visibility (B, m, n) form.
+
+Gauge: pose 0 is held fixed at its given value by default (the seed's T_0 = [I | 0] when it
+is initialized at the identity). Any poses or points can be held fixed.
+
+Ill-posed parts are never dropped silently. When the problem is built:
+- a point with no valid observation is held fixed (it does not enter the cost);
+- a free pose with fewer than 3 valid observations is held fixed (6 unknowns need ≥ 3 points);
+each with a ``UserWarning`` naming the problem and the index, also listed in ``diagnostics``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from torchslam import _checks, jacobians
+from torchslam.lie import se3
+
+__all__ = ["PointMapData", "PointMapProblem"]
+
+
+@dataclass(frozen=True)
+class PointMapData:
+    """Everything of a problem that is not a variable: observations, weights, structure.
+
+    Shapes: B problems, E observation slots (padded), m poses, n points.
+    """
+
+    # Index of the observing pose of each observation, long (B, E).
+    pose_index: Tensor
+    # Index of the observed world point of each observation, long (B, E).
+    point_index: Tensor
+    # Observed points X_ij in their frame, (B, E, 3).
+    observations: Tensor
+    # False for padding slots, bool (B, E).
+    valid: Tensor
+    # Scalar weights w_e (B, E), or None when ``information`` is given or weights are 1.
+    weights: Tensor | None
+    # Information matrices Ω_e (B, E, 3, 3), or None.
+    information: Tensor | None
+    # Poses held fixed, bool (B, m).
+    fixed_poses: Tensor
+    # Points held fixed, bool (B, n).
+    fixed_points: Tensor
+    # Robust kernel ρ applied to s_e = r_eᵀ Ω_e r_e, or None for ρ(s) = s.
+    loss: object | None
+
+    @property
+    def num_poses(self) -> int:
+        return self.fixed_poses.shape[-1]
+
+    @property
+    def num_points(self) -> int:
+        return self.fixed_points.shape[-1]
+
+    def whiten(self, vectors: Tensor) -> Tensor:
+        """Apply the square root of the information, Lᵀ v with Ω = L Lᵀ; (B, E, 3, ...) → same.
+
+        Accepts residuals (B, E, 3) or Jacobian blocks (B, E, 3, k).
+        """
+        column = vectors.dim() == 3
+        v = vectors[..., None] if column else vectors
+        if self.information is not None:
+            L = torch.linalg.cholesky(self.information)
+            v = L.transpose(-1, -2) @ v
+        elif self.weights is not None:
+            v = torch.sqrt(self.weights)[..., None, None] * v
+        v = v * self.valid[..., None, None]
+        return v[..., 0] if column else v
+
+    def squared_norms(self, raw_residuals: Tensor) -> Tensor:
+        """s_e = r_eᵀ Ω_e r_e, (B, E); exactly 0 on padding. No square root, so gradients
+        w.r.t. the weights are exact even at w = 0."""
+        if self.information is not None:
+            s = (raw_residuals[..., None, :] @ self.information @ raw_residuals[..., None])[
+                ..., 0, 0
+            ]
+        else:
+            s = (raw_residuals * raw_residuals).sum(-1)
+            if self.weights is not None:
+                s = self.weights * s
+        return torch.where(self.valid, s, torch.zeros_like(s))
+
+
+class PointMapProblem(nn.Module):
+    """B independent ICP-SLAM problems: poses ξ (B, m, 6) and points (B, n, 3) as parameters.
+
+    Args:
+        poses: initial poses T_i0 (world → frame i), shape (B, m, 4, 4); stored as
+            ``pose_tangent`` = Log(T) (B, m, 6), ξ = (ω, v) rotation first.
+        points: initial world points X_j, shape (B, n, 3).
+        pose_index: observing pose of each observation, integer (B, E), in [0, m).
+        point_index: observed point of each observation, integer (B, E), in [0, n).
+        observations: observed points X_ij in frame i, shape (B, E, 3).
+        valid: False for padding slots, bool (B, E); default all True.
+        weights: per-observation scalar weights (B, E) ≥ 0, or information matrices
+            (B, E, 3, 3) (symmetric positive definite); default 1.
+        fixed_poses: poses held fixed, bool (B, m); default: pose 0 only (the gauge).
+        fixed_points: points held fixed, bool (B, n); default none.
+        loss: robust kernel from :mod:`torchslam.losses` (e.g. ``HuberLoss(0.05)``), applied
+            per observation to s = rᵀΩr; default none (least squares).
+
+    All float tensors must share one dtype (float64 recommended) and device.
+    """
+
+    def __init__(
+        self,
+        poses: Tensor,
+        points: Tensor,
+        pose_index: Tensor,
+        point_index: Tensor,
+        observations: Tensor,
+        *,
+        valid: Tensor | None = None,
+        weights: Tensor | None = None,
+        fixed_poses: Tensor | None = None,
+        fixed_points: Tensor | None = None,
+        loss: object | None = None,
+    ) -> None:
+        super().__init__()
+        fn = "PointMapProblem"
+        _checks.check_tensor(fn, "poses", poses, (4, 4), min_batch_dims=2)
+        _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2)
+        _checks.check_tensor(fn, "observations", observations, (3,), min_batch_dims=2)
+        _checks.check_same_kind(fn, poses=poses, points=points, observations=observations)
+        if poses.dim() != 4 or points.dim() != 3 or observations.dim() != 3:
+            raise ValueError(
+                f"{fn}: expected poses (B, m, 4, 4), points (B, n, 3), observations (B, E, 3); "
+                f"got {tuple(poses.shape)}, {tuple(points.shape)}, {tuple(observations.shape)}"
+            )
+        B, m = poses.shape[:2]
+        n = points.shape[1]
+        E = observations.shape[1]
+        _check_batch(fn, B, points=points, observations=observations)
+        pose_index = _index_tensor(fn, "pose_index", pose_index, (B, E), observations.device)
+        point_index = _index_tensor(fn, "point_index", point_index, (B, E), observations.device)
+        valid = _mask(fn, "valid", valid, (B, E), observations.device, default=True)
+        fixed_poses_given = fixed_poses is not None
+        fixed_poses = _mask(fn, "fixed_poses", fixed_poses, (B, m), poses.device, default=False)
+        if not fixed_poses_given:
+            fixed_poses = fixed_poses.clone()
+            fixed_poses[:, 0] = True
+        fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False)
+        scalar_weights, information = _split_weights(fn, weights, B, E, observations)
+
+        _checks.check_pose_matrix(fn, "poses", poses)
+        _checks.check_finite(fn, "points", points)
+        self.diagnostics: list[str] = []
+        if _checks.value_checks_active():
+            _check_observations(fn, observations, valid, pose_index, point_index, m, n)
+            fixed_poses, fixed_points = _hold_ill_posed_fixed(
+                fn, valid, pose_index, point_index, fixed_poses, fixed_points, self.diagnostics
+            )
+
+        self.pose_tangent = nn.Parameter(se3.log(poses.detach()).clone())
+        self.points = nn.Parameter(points.detach().clone())
+        self.data = PointMapData(
+            pose_index=pose_index,
+            point_index=point_index,
+            observations=observations,
+            valid=valid,
+            weights=scalar_weights,
+            information=information,
+            fixed_poses=fixed_poses,
+            fixed_points=fixed_points,
+            loss=loss,
+        )
+
+    # ----------------------------------------------------------------------------------------
+    # Constructors
+
+    @classmethod
+    def from_dense(
+        cls,
+        poses: Tensor,
+        points: Tensor,
+        observations: Tensor,
+        visibility: Tensor,
+        *,
+        weights: Tensor | None = None,
+        fixed_poses: Tensor | None = None,
+        fixed_points: Tensor | None = None,
+        loss: object | None = None,
+    ) -> PointMapProblem:
+        """Build from dense observations (B, m, n, 3) and a visibility mask (B, m, n).
+
+        ``weights`` may be dense too: (B, m, n) scalars or (B, m, n, 3, 3) information.
+        Internally the visible entries become padded edge lists, sorted by (pose, point).
+        """
+        fn = "PointMapProblem.from_dense"
+        _checks.check_tensor(fn, "observations", observations, (3,), min_batch_dims=3)
+        if observations.dim() != 4:
+            raise ValueError(
+                f"{fn}: argument 'observations' must have shape (B, m, n, 3), "
+                f"got {tuple(observations.shape)}"
+            )
+        B, m, n, _ = observations.shape
+        visibility = _mask(fn, "visibility", visibility, (B, m, n), observations.device, False)
+        flat = visibility.reshape(B, m * n)
+        counts = flat.sum(-1)
+        E = int(counts.max()) if B > 0 else 0
+        # Stable sort puts each problem's visible entries first, in (pose, point) order.
+        order = torch.sort((~flat).to(torch.uint8), dim=-1, stable=True).indices[:, :E]
+        valid = torch.arange(E, device=flat.device) < counts[:, None]
+        obs = torch.gather(observations.reshape(B, m * n, 3), 1, order[..., None].expand(B, E, 3))
+        edge_weights = None
+        if weights is not None:
+            tail = weights.shape[3:]
+            w = weights.reshape(B, m * n, *tail)
+            idx = order.reshape(B, E, *([1] * len(tail))).expand(B, E, *tail)
+            edge_weights = torch.gather(w, 1, idx)
+            if tail:
+                eye = torch.eye(3, dtype=w.dtype, device=w.device)
+                edge_weights = torch.where(valid[..., None, None], edge_weights, eye)
+            else:
+                edge_weights = torch.where(valid, edge_weights, torch.ones_like(edge_weights))
+        return cls(
+            poses,
+            points,
+            order // n,
+            order % n,
+            obs,
+            valid=valid,
+            weights=edge_weights,
+            fixed_poses=fixed_poses,
+            fixed_points=fixed_points,
+            loss=loss,
+        )
+
+    @classmethod
+    def from_scene(
+        cls,
+        scene: object,
+        poses: Tensor | None = None,
+        points: Tensor | None = None,
+        *,
+        loss: object | None = None,
+    ) -> PointMapProblem:
+        """Build from a :class:`torchslam.data.synthetic.SyntheticScene`.
+
+        ``poses``/``points`` default to the scene's ground truth (useful for tests); pass an
+        initialization (e.g. from :mod:`torchslam.initialization`) to solve.
+        """
+        return cls(
+            scene.poses_gt if poses is None else poses,
+            scene.points_gt if points is None else points,
+            scene.pose_index,
+            scene.point_index,
+            scene.observations,
+            valid=scene.valid,
+            loss=loss,
+        )
+
+    # ----------------------------------------------------------------------------------------
+    # Sizes
+
+    @property
+    def batch_size(self) -> int:
+        return self.pose_tangent.shape[0]
+
+    @property
+    def num_poses(self) -> int:
+        return self.pose_tangent.shape[1]
+
+    @property
+    def num_points(self) -> int:
+        return self.points.shape[1]
+
+    @property
+    def num_observations(self) -> Tensor:
+        """Valid observations per problem, long (B,)."""
+        return self.data.valid.sum(-1)
+
+    # ----------------------------------------------------------------------------------------
+    # Residuals and cost
+
+    def poses(self) -> Tensor:
+        """Current poses T_i0 = Exp(ξ_i), shape (B, m, 4, 4)."""
+        return se3._exp(self.pose_tangent)
+
+    def raw_residuals(self) -> Tensor:
+        """r_e = X_ij − T_i0 X_j, (B, E, 3), zero on padding (differentiable w.r.t. all)."""
+        return raw_residuals(self.pose_tangent, self.points, self.data)
+
+    def residuals(self) -> Tensor:
+        """Weighted (whitened) residuals Lᵀ r_e with Ω_e = L Lᵀ, (B, E, 3), zero on padding."""
+        return self.data.whiten(self.raw_residuals())
+
+    def cost(self) -> Tensor:
+        """Per-problem cost ½ Σ_e ρ(r_eᵀ Ω_e r_e), shape (B,)."""
+        return cost(self.pose_tangent, self.points, self.data)
+
+    def forward(self) -> Tensor:
+        """The per-problem cost, shape (B,) (so the module can be called like a loss)."""
+        return self.cost()
+
+    # ----------------------------------------------------------------------------------------
+    # Jacobians
+
+    def jacobian_blocks(self, mode: str = "analytic") -> tuple[Tensor, Tensor]:
+        """Per-observation blocks of the raw residual, right perturbation, (ω, v) order.
+
+        Args:
+            mode: ``"analytic"`` (default) or ``"jacrev"`` (``torch.func.jacrev`` + vmap).
+
+        Returns:
+            (J_r_xi (B, E, 3, 6), J_r_point (B, E, 3, 3)); padding rows are not zeroed.
+        """
+        return jacobian_blocks(self.pose_tangent, self.points, self.data, mode)
+
+    def dense_jacobian(self, mode: str = "analytic") -> Tensor:
+        """The seed's overall Jacobian of the whitened residuals, (B, 3E, 6m + 3n).
+
+        For small problems and debugging only: refuses (ValueError) above
+        ``torchslam.jacobians.DENSE_JACOBIAN_MAX_ENTRIES`` entries. Padding rows are zero.
+        """
+        B, E = self.data.pose_index.shape
+        cols = 6 * self.num_poses + 3 * self.num_points
+        if B * 3 * E * cols > jacobians.DENSE_JACOBIAN_MAX_ENTRIES:
+            # Check before computing anything.
+            jacobians.dense_jacobian(
+                self.points.new_zeros(B, E, 3, 6),
+                self.points.new_zeros(B, E, 3, 3),
+                self.data.pose_index,
+                self.data.point_index,
+                self.num_poses,
+                self.num_points,
+            )
+        J_xi, J_point = self.jacobian_blocks(mode)
+        return jacobians.dense_jacobian(
+            self.data.whiten(J_xi),
+            self.data.whiten(J_point),
+            self.data.pose_index,
+            self.data.point_index,
+            self.num_poses,
+            self.num_points,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"batch_size={self.batch_size}, num_poses={self.num_poses}, "
+            f"num_points={self.num_points}, max_observations={self.data.pose_index.shape[1]}"
+        )
+
+
+# ------------------------------------------------------------------------------------------
+# Functional forms (used by the solver, which works on plain tensors)
+
+
+def gather_poses(pose_tangent: Tensor, pose_index: Tensor) -> Tensor:
+    """ξ of the observing pose of each observation: (B, m, 6), (B, E) → (B, E, 6)."""
+    return torch.gather(pose_tangent, 1, pose_index[..., None].expand(*pose_index.shape, 6))
+
+
+def gather_points(points: Tensor, point_index: Tensor) -> Tensor:
+    """Point of each observation: (B, n, 3), (B, E) → (B, E, 3)."""
+    return torch.gather(points, 1, point_index[..., None].expand(*point_index.shape, 3))
+
+
+def raw_residuals_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
+    """r_e = X_ij − T_i X_j from pose matrices T (B, m, 4, 4); (B, E, 3), zero on padding."""
+    B, E = data.pose_index.shape
+    T_e = torch.gather(T, 1, data.pose_index[..., None, None].expand(B, E, 4, 4))
+    X_e = gather_points(points, data.point_index)
+    r = data.observations - se3._act(T_e, X_e)
+    return torch.where(data.valid[..., None], r, torch.zeros_like(r))
+
+
+def raw_residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
+    """r_e = X_ij − Exp(ξ_i) X_j, (B, E, 3), zero on padding."""
+    return raw_residuals_from_poses(se3._exp(pose_tangent), points, data)
+
+
+def cost(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
+    """½ Σ_e ρ(r_eᵀ Ω_e r_e) per problem, (B,)."""
+    s = data.squared_norms(raw_residuals(pose_tangent, points, data))
+    if data.loss is not None:
+        s = torch.where(data.valid, data.loss(s)[0], torch.zeros_like(s))
+    return 0.5 * s.sum(-1)
+
+
+def jacobian_blocks(
+    pose_tangent: Tensor, points: Tensor, data: PointMapData, mode: str = "analytic"
+) -> tuple[Tensor, Tensor]:
+    """Raw-residual Jacobian blocks (B, E, 3, 6) and (B, E, 3, 3); see :mod:`jacobians`."""
+    X_e = gather_points(points, data.point_index)
+    if mode == "analytic":
+        B, E = data.pose_index.shape
+        R = se3._exp(pose_tangent)[..., :3, :3]
+        R_e = torch.gather(R, 1, data.pose_index[..., None, None].expand(B, E, 3, 3))
+        return jacobians.analytic_blocks(R_e, X_e)
+    if mode == "jacrev":
+        xi_e = gather_poses(pose_tangent, data.pose_index)
+        return jacobians.jacrev_blocks(xi_e, X_e, data.observations)
+    raise ValueError(f"jacobian_blocks: 'mode' must be 'analytic' or 'jacrev', got {mode!r}")
+
+
+# ------------------------------------------------------------------------------------------
+# Input checks
+
+
+def _check_batch(fn: str, B: int, **tensors: Tensor) -> None:
+    for name, t in tensors.items():
+        if t.shape[0] != B:
+            raise ValueError(
+                f"{fn}: batch sizes differ: 'poses' has B = {B} but '{name}' has "
+                f"B = {t.shape[0]} (shape {tuple(t.shape)})"
+            )
+
+
+def _index_tensor(fn: str, name: str, x: object, shape: tuple, device) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{fn}: argument '{name}' must be a torch.Tensor, got {type(x).__name__}")
+    if x.dtype.is_floating_point or x.dtype.is_complex or x.dtype == torch.bool:
+        raise TypeError(f"{fn}: argument '{name}' must be an integer tensor, got {x.dtype}")
+    if tuple(x.shape) != tuple(shape):
+        raise ValueError(f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}")
+    return x.to(device=device, dtype=torch.long)
+
+
+def _mask(fn: str, name: str, x: object, shape: tuple, device, default: bool) -> Tensor:
+    if x is None:
+        return torch.full(shape, default, dtype=torch.bool, device=device)
+    if not isinstance(x, Tensor) or x.dtype != torch.bool:
+        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
+        raise TypeError(f"{fn}: argument '{name}' must be a bool tensor, got {got}")
+    if tuple(x.shape) != tuple(shape):
+        raise ValueError(f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}")
+    return x.to(device)
+
+
+def _split_weights(
+    fn: str, weights: Tensor | None, B: int, E: int, observations: Tensor
+) -> tuple[Tensor | None, Tensor | None]:
+    if weights is None:
+        return None, None
+    _checks.check_tensor(fn, "weights", weights)
+    _checks.check_same_kind(fn, observations=observations, weights=weights)
+    if tuple(weights.shape) == (B, E):
+        _checks.check_finite(fn, "weights", weights)
+        if _checks.value_checks_active() and bool((weights < 0).any()):
+            b, e = (int(i) for i in (weights < 0).nonzero()[0])
+            raise ValueError(
+                f"{fn}: argument 'weights' must be ≥ 0; problem {b}, observation {e} has "
+                f"{float(weights[b, e]):.6g}"
+            )
+        return weights, None
+    if tuple(weights.shape) == (B, E, 3, 3):
+        _checks.check_finite(fn, "weights", weights)
+        if _checks.value_checks_active():
+            asym = (weights - weights.transpose(-1, -2)).abs().amax(dim=(-1, -2))
+            _, info = torch.linalg.cholesky_ex(weights.detach())
+            bad = (info > 0) | (asym > 1e-9 * weights.abs().amax(dim=(-1, -2)).clamp_min(1))
+            if bool(bad.any()):
+                b, e = (int(i) for i in bad.nonzero()[0])
+                raise ValueError(
+                    f"{fn}: information matrices in 'weights' must be symmetric positive "
+                    f"definite; problem {b}, observation {e} is not"
+                )
+        return None, weights
+    raise ValueError(
+        f"{fn}: argument 'weights' must have shape (B, E) = ({B}, {E}) for scalar weights or "
+        f"(B, E, 3, 3) = ({B}, {E}, 3, 3) for information matrices, got {tuple(weights.shape)}"
+    )
+
+
+def _check_observations(
+    fn: str,
+    observations: Tensor,
+    valid: Tensor,
+    pose_index: Tensor,
+    point_index: Tensor,
+    m: int,
+    n: int,
+) -> None:
+    for name, index, size in (("pose_index", pose_index, m), ("point_index", point_index, n)):
+        bad = valid & ((index < 0) | (index >= size))
+        if bool(bad.any()):
+            b, e = (int(i) for i in bad.nonzero()[0])
+            raise ValueError(
+                f"{fn}: '{name}' out of range [0, {size}): problem {b}, observation {e} has "
+                f"index {int(index[b, e])}"
+            )
+    bad = valid[..., None] & ~torch.isfinite(observations.detach())
+    if bool(bad.any()):
+        b, e, _ = (int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"{fn}: argument 'observations' has a non-finite value (NaN or Inf) in problem {b}, "
+            f"observation {e} (pose {int(pose_index[b, e])}, point {int(point_index[b, e])}); "
+            "remove it or mark it invalid with 'valid'"
+        )
+
+
+def _hold_ill_posed_fixed(
+    fn: str,
+    valid: Tensor,
+    pose_index: Tensor,
+    point_index: Tensor,
+    fixed_poses: Tensor,
+    fixed_points: Tensor,
+    diagnostics: list[str],
+) -> tuple[Tensor, Tensor]:
+    B, m = fixed_poses.shape
+    n = fixed_points.shape[1]
+    ones = valid.to(torch.long)
+    batch_offset = torch.arange(B, device=valid.device)[:, None]
+    pose_counts = torch.zeros(B * m, dtype=torch.long, device=valid.device)
+    pose_counts.index_add_(0, (batch_offset * m + pose_index.clamp(0, m - 1)).reshape(-1),
+                           ones.reshape(-1))
+    point_counts = torch.zeros(B * n, dtype=torch.long, device=valid.device)
+    point_counts.index_add_(0, (batch_offset * n + point_index.clamp(0, n - 1)).reshape(-1),
+                            ones.reshape(-1))
+    weak_poses = (pose_counts.reshape(B, m) < 3) & ~fixed_poses
+    unseen_points = (point_counts.reshape(B, n) == 0) & ~fixed_points
+    for b, i in weak_poses.nonzero().tolist():
+        diagnostics.append(
+            f"problem {b}: pose {i} has {int(pose_counts[b * m + i])} observation(s) (< 3); "
+            "held fixed at its initial value"
+        )
+    for b, j in unseen_points.nonzero().tolist():
+        diagnostics.append(f"problem {b}: point {j} has no observation; held fixed")
+    if diagnostics:
+        shown = "; ".join(diagnostics[:5]) + (f"; … ({len(diagnostics)} in all)"
+                                             if len(diagnostics) > 5 else "")
+        warnings.warn(f"{fn}: {shown}. See problem.diagnostics.", UserWarning, stacklevel=3)
+    return fixed_poses | weak_poses, fixed_points | unseen_points

@@ -1,0 +1,308 @@
+"""Linear solve of the damped normal equations, by Schur complement on the points or densely.
+
+The system of one problem, with poses p and points l,
+
+    [ U + λD_U    W       ] [δp]     [g_p]
+    [ Wᵀ          V + λD_V] [δl] = − [g_l]
+
+is reduced on the points (the classic bundle-adjustment elimination; V is block-diagonal
+3×3 because each observation touches one point):
+
+    S = (U + λD_U) − Σ_j W_j (V_j + λD_Vj)⁻¹ W_jᵀ,   S δp = −g_p + Σ_j W_j V_j⁻¹ g_lj,
+    δl_j = −V_j⁻¹ (g_lj + W_jᵀ δp).
+
+S is assembled from pairs of observations of the same point: the pair (a, b) with poses
+(i_a, i_b) adds Y_a W_bᵀ, Y_a = W_a V_j⁻¹, to block (i_a, i_b). Only pairs with
+(i_a, a) < (i_b, b) plus the self-pairs a = b are formed; the rest follows by symmetry.
+Memory is O(E + P + m²) with P = Σ_j (observations of j)², processed in chunks; the dense
+(6m+3n)² matrix is never formed. The 6m × 6m system is solved by batched Cholesky
+(``torch.linalg.cholesky_ex``): a problem whose matrix is not positive definite is reported,
+never crashes the batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchslam.problem import PointMapData, gather_points
+from torchslam.solver.linearize import (
+    BlockLinearization,
+    StructuredLinearization,
+    blocks_from_monomials,
+    monomials,
+)
+
+__all__ = ["SchurStructure", "damp", "solve_dense", "solve_schur", "solve_step"]
+
+
+@dataclass
+class SchurStructure:
+    """Observation pairs that share a point, computed once per solve (the sparsity is fixed)."""
+
+    # First / second observation of each pair, flat indices into B·E.
+    first: Tensor
+    second: Tensor
+    # Flat index b·m·m + i_first·m + i_second of the 6×6 block each pair adds to.
+    block: Tensor
+    # 1 for a self-pair (a = b), 2 otherwise is not stored: self-pairs get weight ½ so that
+    # A + Aᵀ counts them once.
+    self_pair: Tensor
+
+    @staticmethod
+    def build(data: PointMapData) -> SchurStructure:
+        B, E = data.pose_index.shape
+        m, n = data.num_poses, data.num_points
+        device = data.pose_index.device
+        batch = torch.arange(B, device=device)[:, None].expand(B, E)
+        # Observations that couple a free pose with a free point.
+        active = (
+            data.valid
+            & ~torch.gather(data.fixed_poses, 1, data.pose_index)
+            & ~torch.gather(data.fixed_points, 1, data.point_index)
+        ).reshape(-1)
+        obs = active.nonzero().squeeze(1)
+        point_key = (batch * n + data.point_index).reshape(-1)[obs]
+        order = torch.argsort(point_key, stable=True)
+        obs, point_key = obs[order], point_key[order]
+        _, counts = torch.unique_consecutive(point_key, return_counts=True)
+        group_start = torch.cumsum(counts, 0) - counts
+        per_obs_count = torch.repeat_interleave(counts, counts)
+        per_obs_start = torch.repeat_interleave(group_start, counts)
+        # All ordered pairs (a, b) inside each point's group.
+        first_pos = torch.repeat_interleave(torch.arange(obs.numel(), device=device), per_obs_count)
+        offset = torch.arange(first_pos.numel(), device=device) - torch.repeat_interleave(
+            torch.cumsum(per_obs_count, 0) - per_obs_count, per_obs_count
+        )
+        second_pos = per_obs_start[first_pos] + offset
+        first, second = obs[first_pos], obs[second_pos]
+        pose_flat = data.pose_index.reshape(-1)
+        i_a, i_b = pose_flat[first], pose_flat[second]
+        keep = (i_a < i_b) | ((i_a == i_b) & (first <= second))
+        first, second, i_a, i_b = first[keep], second[keep], i_a[keep], i_b[keep]
+        b = first // E
+        return SchurStructure(
+            first=first,
+            second=second,
+            block=(b * m + i_a) * m + i_b,
+            self_pair=first == second,
+        )
+
+    @property
+    def num_pairs(self) -> int:
+        return self.first.numel()
+
+
+def damp(blocks: Tensor, lam: Tensor, damping: str) -> Tensor:
+    """Add λD to square diagonal blocks (B, k, d, d); D = diag(block) clamped (Marquardt,
+    as Ceres: [1e-6, 1e32]) or I (Levenberg). ``lam`` has shape (B,)."""
+    eye = torch.eye(blocks.shape[-1], dtype=blocks.dtype, device=blocks.device)
+    if damping == "levenberg":
+        D = eye
+    else:
+        D = torch.diagonal(blocks, dim1=-2, dim2=-1).clamp(1e-6, 1e32)[..., None] * eye
+    return blocks + lam[:, None, None, None] * D
+
+
+def _batched_cholesky_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Solve A x = b for SPD A (..., k, k); returns (x, ok) with ok False where Cholesky failed
+    (x is then zero). Never raises on an indefinite matrix."""
+    L, info = torch.linalg.cholesky_ex(A)
+    ok = info == 0
+    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    L = torch.where(ok[..., None, None], L, eye)
+    x = torch.cholesky_solve(b[..., None], L)[..., 0]
+    return torch.where(ok[..., None], x, torch.zeros_like(x)), ok
+
+
+def solve_step(
+    lin: BlockLinearization | StructuredLinearization,
+    data: PointMapData,
+    structure: SchurStructure | None,
+    lam: Tensor,
+    damping: str,
+    linear_solver: str = "schur",
+    chunk_size: int = 1 << 20,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped Gauss-Newton step (δp (B, m, 6), δl (B, n, 3), ok (B,)) for either
+    linearization form; ``linear_solver`` is "schur" or "dense" (block form only)."""
+    if linear_solver == "dense":
+        if isinstance(lin, StructuredLinearization):
+            raise ValueError("solve_step: the dense solver needs the block linearization")
+        return solve_dense(lin, data, lam, damping)
+    if isinstance(lin, StructuredLinearization):
+        return solve_schur_structured(lin, data, lam, damping)
+    if structure is None:
+        structure = SchurStructure.build(data)
+    return solve_schur(lin, data, structure, lam, damping, chunk_size)
+
+
+def solve_schur_structured(
+    lin: StructuredLinearization, data: PointMapData, lam: Tensor, damping: str
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Schur step for the structured (ICP-SLAM, scalar-weight) linearization.
+
+    With W_e = w_e G_jᵀ and V_j = v_j I (module doc of :mod:`.linearize`), the reduced matrix is
+
+        S_ik = δ_ik U_i − Σ_j (a_ij a_kj / v_j) G_jᵀ G_j,
+
+    a_ij the coupling weight of the observation of point j in frame i (0 if none). Each of the
+    10 monomial coefficients of G_jᵀ G_j is then one product A·diag(f/v)·Aᵀ, all computed by a
+    single batched GEMM of (m × n) by (n × 10m): 20·m²·n flops per problem, no per-pair
+    products. The (m × n) matrix A of coupling weights is the only O(m·n) buffer.
+
+    Returns:
+        (δp (B, m, 6), δl (B, n, 3), ok (B,) bool).
+    """
+    B, E = data.pose_index.shape
+    m, n = data.num_poses, data.num_points
+    U = damp(lin.pose_blocks, lam, damping)
+    v = lin.point_weight
+    if damping == "levenberg":
+        v_d = v + lam[:, None]
+    else:
+        v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
+    batch = torch.arange(B, device=v.device)[:, None]
+    A = (
+        v.new_zeros(B * m * n)
+        .index_add_(
+            0,
+            ((batch * m + data.pose_index) * n + data.point_index).reshape(-1),
+            lin.coupling_weight.reshape(-1),
+        )
+        .reshape(B, m, n)
+    )
+    F = monomials(lin.points) / v_d[..., None]  # (B, n, 10)
+    AF = (A.transpose(1, 2)[..., None] * F[:, :, None, :]).reshape(B, n, m * 10)
+    C = torch.bmm(A, AF).reshape(B, m, m, 10)
+    S = -blocks_from_monomials(C)  # (B, m, m, 6, 6)
+    idx = torch.arange(m, device=S.device)
+    S[:, idx, idx] += U
+    S = S.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+
+    # Right-hand side: −g_p + Σ_e (w_e / v_j) G_jᵀ g_lj.
+    X_e = gather_points(lin.points, data.point_index)
+    y = (lin.coupling_weight / torch.gather(v_d, 1, data.point_index))[..., None] * gather_points(
+        lin.point_gradient, data.point_index
+    )
+    Gty = torch.cat((torch.linalg.cross(X_e, y, dim=-1), y), -1)
+    rhs = (
+        (-lin.pose_gradient)
+        .reshape(B * m, 6)
+        .index_add_(0, (batch * m + data.pose_index).reshape(-1), Gty.reshape(-1, 6))
+    )
+    dp, ok = _batched_cholesky_solve(S, rhs.reshape(B, 6 * m))
+    dp = dp.reshape(B, m, 6)
+
+    # Back-substitution: δl_j = −(g_lj + Σ_e w_e G_j δp_i(e)) / v_j, G_j δp = δω × X_j + δv.
+    dp_e = torch.gather(dp, 1, data.pose_index[..., None].expand(B, E, 6))
+    G_dp = torch.linalg.cross(dp_e[..., :3], X_e, dim=-1) + dp_e[..., 3:]
+    acc = lin.point_gradient.reshape(B * n, 3).index_add(
+        0,
+        (batch * n + data.point_index).reshape(-1),
+        (lin.coupling_weight[..., None] * G_dp).reshape(-1, 3),
+    )
+    dl = -acc.reshape(B, n, 3) / v_d[..., None]
+    return dp, dl, ok
+
+
+def solve_schur(
+    lin: BlockLinearization,
+    data: PointMapData,
+    structure: SchurStructure,
+    lam: Tensor,
+    damping: str,
+    chunk_size: int = 1 << 20,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped step by Schur complement on the points.
+
+    Returns:
+        (δp (B, m, 6), δl (B, n, 3), ok (B,) bool — False where a Cholesky failed).
+    """
+    B, E = data.pose_index.shape
+    m, n = data.num_poses, data.num_points
+    U = damp(lin.pose_blocks, lam, damping)
+    V = damp(lin.point_blocks, lam, damping)
+    # V⁻¹ through Cholesky of each 3×3 block (a failure marks the whole problem).
+    LV, info = torch.linalg.cholesky_ex(V)
+    point_ok = (info == 0).all(dim=-1)
+    eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
+    LV = torch.where((info == 0)[..., None, None], LV, eye3)
+    V_inv = torch.cholesky_inverse(LV)  # (B, n, 3, 3)
+
+    W = lin.coupling.reshape(B * E, 6, 3)
+    V_inv_e = V_inv.reshape(B * n, 3, 3)[
+        (torch.arange(B, device=W.device)[:, None] * n + data.point_index).reshape(-1)
+    ]
+    Y = W @ V_inv_e  # (B·E, 6, 3)
+
+    blocks = W.new_zeros(B * m * m, 6, 6)
+    for start in range(0, structure.num_pairs, chunk_size):
+        sl = slice(start, start + chunk_size)
+        prod = Y[structure.first[sl]] @ W[structure.second[sl]].transpose(-1, -2)
+        prod = torch.where(structure.self_pair[sl, None, None], 0.5 * prod, prod)
+        blocks.index_add_(0, structure.block[sl], prod)
+    A = blocks.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
+    S = -(A + A.transpose(-1, -2))
+    S_blocks = S.view(B, m, 6, m, 6)  # a view: adding U on the block diagonal edits S
+    idx = torch.arange(m, device=S.device)
+    S_blocks[:, idx, :, idx, :] += U.transpose(0, 1)
+
+    # Right-hand side: −g_p + Σ_e Y_e g_l(j(e)).
+    gl_e = lin.point_gradient.reshape(B * n, 3)[
+        (torch.arange(B, device=W.device)[:, None] * n + data.point_index).reshape(-1)
+    ]
+    Yg = (Y @ gl_e[..., None])[..., 0].reshape(B, E, 6)
+    rhs = -lin.pose_gradient.clone()
+    rhs.reshape(B * m, 6).index_add_(
+        0,
+        (torch.arange(B, device=W.device)[:, None] * m + data.pose_index).reshape(-1),
+        Yg.reshape(-1, 6),
+    )
+    dp, pose_ok = _batched_cholesky_solve(S, rhs.reshape(B, 6 * m))
+    dp = dp.reshape(B, m, 6)
+
+    # Back-substitution: δl_j = −V_j⁻¹ (g_lj + Σ_e W_eᵀ δp_i(e)).
+    dp_e = torch.gather(dp, 1, data.pose_index[..., None].expand(B, E, 6))
+    Wt_dp = (lin.coupling.transpose(-1, -2) @ dp_e[..., None])[..., 0]  # (B, E, 3)
+    acc = lin.point_gradient.clone()
+    acc.reshape(B * n, 3).index_add_(
+        0,
+        (torch.arange(B, device=W.device)[:, None] * n + data.point_index).reshape(-1),
+        Wt_dp.reshape(-1, 3),
+    )
+    dl = -(V_inv @ acc[..., None])[..., 0]
+    return dp, dl, point_ok & pose_ok
+
+
+def solve_dense(
+    lin: BlockLinearization, data: PointMapData, lam: Tensor, damping: str
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped step from the full (6m + 3n)² system — small problems and cross-checks only.
+
+    Returns:
+        (δp (B, m, 6), δl (B, n, 3), ok (B,) bool).
+    """
+    B, E = data.pose_index.shape
+    m, n = data.num_poses, data.num_points
+    N = 6 * m + 3 * n
+    H = lin.coupling.new_zeros(B, N, N)
+    U = damp(lin.pose_blocks, lam, damping)
+    V = damp(lin.point_blocks, lam, damping)
+    Hb = torch.arange(B, device=H.device)
+    H_poses = H[:, : 6 * m, : 6 * m].view(B, m, 6, m, 6)
+    H_points = H[:, 6 * m :, 6 * m :].view(B, n, 3, n, 3)
+    i, j = torch.arange(m, device=H.device), torch.arange(n, device=H.device)
+    H_poses[:, i, :, i, :] = U.transpose(0, 1)
+    H_points[:, j, :, j, :] = V.transpose(0, 1)
+    rows = 6 * data.pose_index[..., None, None] + torch.arange(6, device=H.device)[:, None]
+    cols = 6 * m + 3 * data.point_index[..., None, None] + torch.arange(3, device=H.device)
+    rows, cols = torch.broadcast_tensors(rows, cols)  # (B, E, 6, 3)
+    bidx = Hb[:, None, None, None].expand_as(rows)
+    H.index_put_((bidx, rows, cols), lin.coupling, accumulate=True)
+    H.index_put_((bidx, cols, rows), lin.coupling, accumulate=True)
+    g = torch.cat((lin.pose_gradient.reshape(B, 6 * m), lin.point_gradient.reshape(B, 3 * n)), -1)
+    x, ok = _batched_cholesky_solve(H, -g)
+    return x[:, : 6 * m].reshape(B, m, 6), x[:, 6 * m :].reshape(B, n, 3), ok
