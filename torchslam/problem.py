@@ -30,6 +30,7 @@ each with a ``UserWarning`` naming the problem and the index, also listed in ``d
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
 
@@ -71,6 +72,20 @@ class PointMapData:
     @property
     def num_poses(self) -> int:
         return self.fixed_poses.shape[-1]
+
+    @functools.cached_property
+    def flat_pose_index(self) -> Tensor:
+        """b·m + pose_index, long (B, E): rows of (B·m, …) tensors, for ``index_select``."""
+        B = self.pose_index.shape[0]
+        batch = torch.arange(B, device=self.pose_index.device)[:, None]
+        return batch * self.num_poses + self.pose_index
+
+    @functools.cached_property
+    def flat_point_index(self) -> Tensor:
+        """b·n + point_index, long (B, E): rows of (B·n, …) tensors, for ``index_select``."""
+        B = self.point_index.shape[0]
+        batch = torch.arange(B, device=self.point_index.device)[:, None]
+        return batch * self.num_points + self.point_index
 
     @property
     def num_points(self) -> int:
@@ -370,21 +385,33 @@ class PointMapProblem(nn.Module):
 # Functional forms (used by the solver, which works on plain tensors)
 
 
-def gather_poses(pose_tangent: Tensor, pose_index: Tensor) -> Tensor:
-    """ξ of the observing pose of each observation: (B, m, 6), (B, E) → (B, E, 6)."""
-    return torch.gather(pose_tangent, 1, pose_index[..., None].expand(*pose_index.shape, 6))
+def per_observation(values: Tensor, flat_index: Tensor) -> Tensor:
+    """Rows of ``values`` (B, k, *tail) picked by a flat index (B, E) → (B, E, *tail).
+
+    ``flat_index`` is ``data.flat_pose_index`` or ``data.flat_point_index``; an
+    ``index_select`` on the flattened rows is much cheaper than ``gather`` with an index
+    expanded over the tail.
+    """
+    B, E = flat_index.shape
+    tail = values.shape[2:]
+    flat = values.reshape(-1, *tail)
+    return torch.index_select(flat, 0, flat_index.reshape(-1)).reshape(B, E, *tail)
 
 
-def gather_points(points: Tensor, point_index: Tensor) -> Tensor:
-    """Point of each observation: (B, n, 3), (B, E) → (B, E, 3)."""
-    return torch.gather(points, 1, point_index[..., None].expand(*point_index.shape, 3))
+def gather_poses(pose_tangent: Tensor, data: PointMapData) -> Tensor:
+    """ξ of the observing pose of each observation: (B, m, 6) → (B, E, 6)."""
+    return per_observation(pose_tangent, data.flat_pose_index)
+
+
+def gather_points(points: Tensor, data: PointMapData) -> Tensor:
+    """Point of each observation: (B, n, 3) → (B, E, 3)."""
+    return per_observation(points, data.flat_point_index)
 
 
 def raw_residuals_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
     """r_e = X_ij − T_i X_j from pose matrices T (B, m, 4, 4); (B, E, 3), zero on padding."""
-    B, E = data.pose_index.shape
-    T_e = torch.gather(T, 1, data.pose_index[..., None, None].expand(B, E, 4, 4))
-    X_e = gather_points(points, data.point_index)
+    T_e = per_observation(T, data.flat_pose_index)
+    X_e = gather_points(points, data)
     r = data.observations - se3._act(T_e, X_e)
     return torch.where(data.valid[..., None], r, torch.zeros_like(r))
 
@@ -406,14 +433,12 @@ def jacobian_blocks(
     pose_tangent: Tensor, points: Tensor, data: PointMapData, mode: str = "analytic"
 ) -> tuple[Tensor, Tensor]:
     """Raw-residual Jacobian blocks (B, E, 3, 6) and (B, E, 3, 3); see :mod:`jacobians`."""
-    X_e = gather_points(points, data.point_index)
+    X_e = gather_points(points, data)
     if mode == "analytic":
-        B, E = data.pose_index.shape
-        R = se3._exp(pose_tangent)[..., :3, :3]
-        R_e = torch.gather(R, 1, data.pose_index[..., None, None].expand(B, E, 3, 3))
+        R_e = per_observation(se3._exp(pose_tangent)[..., :3, :3], data.flat_pose_index)
         return jacobians.analytic_blocks(R_e, X_e)
     if mode == "jacrev":
-        xi_e = gather_poses(pose_tangent, data.pose_index)
+        xi_e = gather_poses(pose_tangent, data)
         return jacobians.jacrev_blocks(xi_e, X_e, data.observations)
     raise ValueError(f"jacobian_blocks: 'mode' must be 'analytic' or 'jacrev', got {mode!r}")
 
@@ -528,11 +553,13 @@ def _hold_ill_posed_fixed(
     ones = valid.to(torch.long)
     batch_offset = torch.arange(B, device=valid.device)[:, None]
     pose_counts = torch.zeros(B * m, dtype=torch.long, device=valid.device)
-    pose_counts.index_add_(0, (batch_offset * m + pose_index.clamp(0, m - 1)).reshape(-1),
-                           ones.reshape(-1))
+    pose_counts.index_add_(
+        0, (batch_offset * m + pose_index.clamp(0, m - 1)).reshape(-1), ones.reshape(-1)
+    )
     point_counts = torch.zeros(B * n, dtype=torch.long, device=valid.device)
-    point_counts.index_add_(0, (batch_offset * n + point_index.clamp(0, n - 1)).reshape(-1),
-                            ones.reshape(-1))
+    point_counts.index_add_(
+        0, (batch_offset * n + point_index.clamp(0, n - 1)).reshape(-1), ones.reshape(-1)
+    )
     weak_poses = (pose_counts.reshape(B, m) < 3) & ~fixed_poses
     unseen_points = (point_counts.reshape(B, n) == 0) & ~fixed_points
     for b, i in weak_poses.nonzero().tolist():
@@ -543,7 +570,8 @@ def _hold_ill_posed_fixed(
     for b, j in unseen_points.nonzero().tolist():
         diagnostics.append(f"problem {b}: point {j} has no observation; held fixed")
     if diagnostics:
-        shown = "; ".join(diagnostics[:5]) + (f"; … ({len(diagnostics)} in all)"
-                                             if len(diagnostics) > 5 else "")
+        shown = "; ".join(diagnostics[:5]) + (
+            f"; … ({len(diagnostics)} in all)" if len(diagnostics) > 5 else ""
+        )
         warnings.warn(f"{fn}: {shown}. See problem.diagnostics.", UserWarning, stacklevel=3)
     return fixed_poses | weak_poses, fixed_points | unseen_points

@@ -3,6 +3,6 @@
 Tangent ordering ξ = (ω, v), rotation first, as in the seed; right perturbation T·Exp(δ).
 """
 
-from torchslam.lie import se3, so3
+from torchslam.lie import convert, se3, so3
 
-__all__ = ["se3", "so3"]
+__all__ = ["convert", "se3", "so3"]

@@ -109,10 +109,12 @@ def atan_ratio(y: Tensor, x: Tensor) -> Tensor:
 
     Used by the SO(3) log: θ / sin(θ/2) = 2 · atan_ratio(|v|, w) for a quaternion (w, v).
     """
-    r2 = (y / x) ** 2
     # The atan series converges slowly (no factorials), so its branch is narrower; atan2 has
-    # no cancellation, only the 0/0 at y = 0 to avoid.
-    small = r2 < 1e-2
+    # no cancellation, only the 0/0 at y = 0 to avoid. Both branches see safe inputs, so the
+    # gradient is finite at y = 0 and at x = 0 (θ = π).
+    small = y * y < 1e-2 * (x * x)
+    x_safe = torch.where(small, x, torch.ones_like(x))
+    r2 = torch.where(small, (y / x_safe) ** 2, torch.zeros_like(y))
     y_safe = torch.where(small, torch.ones_like(y), y)
     closed = torch.atan2(y_safe, x) / y_safe
-    return torch.where(small, _horner(r2, _ATAN) / x, closed)
+    return torch.where(small, _horner(r2, _ATAN) / x_safe, closed)

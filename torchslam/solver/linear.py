@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchslam.problem import PointMapData, gather_points
+from torchslam.problem import PointMapData, gather_points, per_observation
 from torchslam.solver.linearize import (
     BlockLinearization,
     StructuredLinearization,
@@ -156,7 +156,7 @@ def solve_schur_structured(
     Returns:
         (δp (B, m, 6), δl (B, n, 3), ok (B,) bool).
     """
-    B, E = data.pose_index.shape
+    B, _E = data.pose_index.shape
     m, n = data.num_poses, data.num_points
     U = damp(lin.pose_blocks, lam, damping)
     v = lin.point_weight
@@ -183,10 +183,10 @@ def solve_schur_structured(
     S = S.transpose(2, 3).reshape(B, 6 * m, 6 * m)
 
     # Right-hand side: −g_p + Σ_e (w_e / v_j) G_jᵀ g_lj.
-    X_e = gather_points(lin.points, data.point_index)
-    y = (lin.coupling_weight / torch.gather(v_d, 1, data.point_index))[..., None] * gather_points(
-        lin.point_gradient, data.point_index
-    )
+    X_e = gather_points(lin.points, data)
+    y = (lin.coupling_weight / per_observation(v_d, data.flat_point_index))[
+        ..., None
+    ] * gather_points(lin.point_gradient, data)
     Gty = torch.cat((torch.linalg.cross(X_e, y, dim=-1), y), -1)
     rhs = (
         (-lin.pose_gradient)
@@ -197,7 +197,7 @@ def solve_schur_structured(
     dp = dp.reshape(B, m, 6)
 
     # Back-substitution: δl_j = −(g_lj + Σ_e w_e G_j δp_i(e)) / v_j, G_j δp = δω × X_j + δv.
-    dp_e = torch.gather(dp, 1, data.pose_index[..., None].expand(B, E, 6))
+    dp_e = per_observation(dp, data.flat_pose_index)
     G_dp = torch.linalg.cross(dp_e[..., :3], X_e, dim=-1) + dp_e[..., 3:]
     acc = lin.point_gradient.reshape(B * n, 3).index_add(
         0,
@@ -265,7 +265,7 @@ def solve_schur(
     dp = dp.reshape(B, m, 6)
 
     # Back-substitution: δl_j = −V_j⁻¹ (g_lj + Σ_e W_eᵀ δp_i(e)).
-    dp_e = torch.gather(dp, 1, data.pose_index[..., None].expand(B, E, 6))
+    dp_e = per_observation(dp, data.flat_pose_index)
     Wt_dp = (lin.coupling.transpose(-1, -2) @ dp_e[..., None])[..., 0]  # (B, E, 3)
     acc = lin.point_gradient.clone()
     acc.reshape(B * n, 3).index_add_(
@@ -285,7 +285,7 @@ def solve_dense(
     Returns:
         (δp (B, m, 6), δl (B, n, 3), ok (B,) bool).
     """
-    B, E = data.pose_index.shape
+    B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     N = 6 * m + 3 * n
     H = lin.coupling.new_zeros(B, N, N)

@@ -36,7 +36,7 @@ from torch import Tensor
 from torchslam import losses
 from torchslam.jacobians import analytic_blocks
 from torchslam.lie import se3, so3
-from torchslam.problem import PointMapData, gather_points, jacobian_blocks
+from torchslam.problem import PointMapData, gather_points, jacobian_blocks, per_observation
 
 __all__ = [
     "BlockLinearization",
@@ -145,20 +145,13 @@ def blocks_from_monomials(c: Tensor) -> Tensor:
 
 
 def _residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData):
-    B, E = data.pose_index.shape
-    T = se3._exp(pose_tangent)
-    T_e = torch.gather(T, 1, data.pose_index[..., None, None].expand(B, E, 4, 4))
-    X_e = gather_points(points, data.point_index)
+    T_e = per_observation(se3._exp(pose_tangent), data.flat_pose_index)
+    X_e = gather_points(points, data)
     return data.observations - se3._act(T_e, X_e), T_e, X_e
 
 
 def _slots(data: PointMapData) -> tuple[Tensor, Tensor]:
-    B = data.pose_index.shape[0]
-    batch = torch.arange(B, device=data.pose_index.device)[:, None]
-    return (
-        (batch * data.num_poses + data.pose_index).reshape(-1),
-        (batch * data.num_points + data.point_index).reshape(-1),
-    )
+    return data.flat_pose_index.reshape(-1), data.flat_point_index.reshape(-1)
 
 
 def linearize(
@@ -205,7 +198,7 @@ def linearize(
 
 
 def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
-    B, E = data.pose_index.shape
+    B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     pose_slot, point_slot = _slots(data)
     # q_e = J_Xᵀ w r = −w Rᵀ r; then J_ξᵀ w r = G_jᵀ q = [X × q; q].
@@ -238,7 +231,7 @@ def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
 
 
 def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
-    B, E = data.pose_index.shape
+    B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     J = torch.cat((J_xi * free_pose[..., None, None], J_X * free_point[..., None, None]), -1)
     valid = data.valid[..., None, None]
@@ -302,14 +295,13 @@ def model_decrease(
 
     δᵀHδ is evaluated as Σ_e ‖J̃_e δ‖² from per-observation quantities (exact, no H).
     """
-    B, E = data.pose_index.shape
-    dp_e = torch.gather(dp, 1, data.pose_index[..., None].expand(B, E, 6))
-    dl_e = gather_points(dl, data.point_index)
+    dp_e = per_observation(dp, data.flat_pose_index)
+    dl_e = gather_points(dl, data)
     g_dot = (lin.pose_gradient * dp).flatten(1).sum(-1) + (lin.point_gradient * dl).flatten(1).sum(
         -1
     )
     if isinstance(lin, StructuredLinearization):
-        X_e = gather_points(lin.points, data.point_index)
+        X_e = gather_points(lin.points, data)
         # J̃δ = √w · (−R)(δX + δω × X + δv): its norm needs no R.
         u = (
             dl_e * lin.free_point[..., None]

@@ -28,7 +28,6 @@ from torchslam.solver import linear
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import (
     StructuredLinearization,
-    cost_at,
     linearize,
     model_decrease,
     whitening_factors,
@@ -128,7 +127,10 @@ def solve_tensors(
             step_norm = torch.sqrt(dp.square().flatten(1).sum(-1) + dl.square().flatten(1).sum(-1))
             x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
             xi_new, X_new = retract(xi, X, dp, dl)
-            new_cost = cost_at(xi_new, X_new, data, factor)
+            # Linearize at the candidate right away: its cost decides acceptance, and an
+            # accepted step then needs no second pass over the observations.
+            lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured)
+            new_cost = lin_new.cost
             finite = torch.isfinite(new_cost) & torch.isfinite(step_norm)
 
             if algorithm == "levenberg_marquardt":
@@ -158,9 +160,8 @@ def solve_tensors(
             X = torch.where(accepted[:, None, None], X_new, X)
             cost = torch.where(accepted, new_cost, cost)
 
-            if bool(accepted.any()):
-                # Rejected problems keep x, so relinearizing all of them reproduces their
-                # previous linearization exactly.
+            lin = _select(accepted, lin_new, lin)
+            if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
                 lin = linearize(xi, X, data, factor, config.jacobian, structured)
             gradient_norm = _gradient_norm(lin)
             g_conv = active & (gradient_norm <= config.gradient_tolerance)
@@ -226,6 +227,18 @@ def solve_tensors(
         gradient_norm=gradient_norm,
         time_seconds=time.perf_counter() - start,
     )
+
+
+def _select(mask: Tensor, new, old):
+    """Per-problem choice between two linearizations of the same form (mask (B,) → new);
+    None when their forms differ."""
+    if type(new) is not type(old):
+        return None
+    fields = {}
+    for name in type(new).__dataclass_fields__:
+        a, b = getattr(new, name), getattr(old, name)
+        fields[name] = torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+    return type(new)(**fields)
 
 
 def solve(

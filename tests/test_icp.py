@@ -1,0 +1,297 @@
+"""ICP front end on synthetic surface-like clouds with known rigid transforms."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchslam import icp
+from torchslam.icp import ICPConfig, ICPStatus
+from torchslam.lie import se3, so3
+
+F64 = torch.float64
+
+
+def surface(count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points on a bumpy closed surface without symmetries (about 2 units across).
+
+    Returns the points (count, 3) and their unit directions from the centre (for cropping
+    "views").
+    """
+    u = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator, dtype=F64), dim=-1)
+    x, y, z = u.unbind(-1)
+    radius = 1 + 0.25 * torch.sin(3 * x + 1) * torch.cos(2 * y) + 0.15 * z**2 + 0.1 * x * y
+    return radius[:, None] * u, u
+
+
+def rotation_error_deg(T: torch.Tensor, T_true: torch.Tensor) -> float:
+    E = T_true[:3, :3].T @ T[:3, :3]
+    return math.degrees(float(so3.log(so3.project(E)).norm()))
+
+
+def translation_error(T: torch.Tensor, T_true: torch.Tensor) -> float:
+    return float((T[:3, 3] - T_true[:3, 3]).norm())
+
+
+@pytest.fixture
+def true_transform() -> torch.Tensor:
+    xi = torch.tensor([0.25, -0.15, 0.2, 0.3, -0.2, 0.1], dtype=F64)  # ≈ 20°
+    return se3.exp(xi)
+
+
+def views(generator, true_transform, noise=0.0, count=3000):
+    """Two partially overlapping views sampled independently from the surface.
+
+    source: the part with direction x > −0.4 in the source frame; target: the part with
+    x < 0.5, moved by ``true_transform`` (target ≈ T source). Overlap: −0.4 < x < 0.5.
+    """
+    points_a, dir_a = surface(count, generator)
+    points_b, dir_b = surface(count, generator)
+    source = points_a[dir_a[:, 0] > -0.4]
+    target = se3.act(true_transform, points_b[dir_b[:, 0] < 0.5])
+    if noise > 0:
+        source = source + noise * torch.randn(source.shape, generator=generator, dtype=F64)
+        target = target + noise * torch.randn(target.shape, generator=generator, dtype=F64)
+    return source, target
+
+
+# ----------------------------------------------------------------------------- preprocessing
+
+
+def test_voxel_downsample_matches_a_loop(generator):
+    points = torch.rand(2000, 3, generator=generator, dtype=F64) * torch.tensor([1.0, 2.0, 0.5])
+    voxel = 0.13
+    got = icp.voxel_downsample(points, voxel)
+    cells = torch.floor((points - points.amin(0)) / voxel).to(torch.int64)
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for i, cell in enumerate(cells.tolist()):
+        groups.setdefault(tuple(cell), []).append(i)
+    expected = torch.stack([points[idx].mean(0) for _, idx in sorted(groups.items())])
+    assert got.shape == expected.shape
+    assert torch.allclose(got, expected, atol=1e-14)
+    assert got.dtype == F64
+
+
+def test_voxel_downsample_small_cases():
+    points = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [1.0, 1.0, 1.0]], dtype=F64)
+    got = icp.voxel_downsample(points, 0.1)
+    assert torch.allclose(got, torch.tensor([[0.025, 0, 0], [1.0, 1.0, 1.0]], dtype=F64))
+    assert icp.voxel_downsample(points[:0], 0.1).shape == (0, 3)
+    with pytest.raises(ValueError, match="voxel_downsample: argument 'voxel_size' must be > 0"):
+        icp.voxel_downsample(points, 0.0)
+    with pytest.raises(ValueError, match="voxel_downsample: argument 'points'"):
+        icp.voxel_downsample(points[None], 0.1)
+
+
+def test_nearest_neighbors_match_brute_force(generator):
+    reference = torch.randn(300, 3, generator=generator, dtype=F64)
+    query = torch.randn(2, 40, 3, generator=generator, dtype=F64)
+    distance, index = icp.nearest_neighbors(query, reference)
+    brute = torch.cdist(query.reshape(-1, 3), reference)  # small: fine in a test
+    assert torch.equal(index.reshape(-1), brute.argmin(-1))
+    assert torch.allclose(distance.reshape(-1), brute.min(-1).values, atol=1e-14)
+    assert distance.shape == index.shape == (2, 40)
+    gated_d, gated_i = icp.nearest_neighbors(query, reference, max_distance=0.2)
+    far = distance > 0.2
+    assert torch.isinf(gated_d[far]).all() and (gated_i[far] == -1).all()
+    assert torch.equal(gated_i[~far], index[~far])
+
+
+def test_estimate_normals_on_a_tilted_plane(generator):
+    uv = torch.rand(500, 2, generator=generator, dtype=F64)
+    normal = torch.nn.functional.normalize(torch.tensor([0.2, -0.3, 1.0], dtype=F64), dim=0)
+    e1 = torch.nn.functional.normalize(
+        torch.linalg.cross(normal, torch.tensor([1.0, 0, 0]).double()), dim=0
+    )
+    e2 = torch.linalg.cross(normal, e1)
+    points = uv[:, :1] * e1 + uv[:, 1:] * e2 + 0.5 * normal
+    normals = icp.estimate_normals(points, neighbors=10)
+    assert torch.allclose((normals @ normal).abs(), torch.ones(500, dtype=F64), atol=1e-10)
+    oriented = icp.estimate_normals(points, 10, viewpoint=torch.zeros(3, dtype=F64))
+    # The origin lies on the −normal side of the plane (offset +0.5 along the normal).
+    assert torch.allclose(oriented @ normal, -torch.ones(500, dtype=F64), atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- ICP
+
+
+def test_exact_copy_is_recovered_to_round_off(generator, true_transform):
+    points, _ = surface(1500, generator)
+    result = icp.icp(points, se3.act(true_transform, points), config=ICPConfig(max_iterations=100))
+    assert result.converged and result.reason.startswith("relative change")
+    assert rotation_error_deg(result.transform, true_transform) < 1e-8
+    assert translation_error(result.transform, true_transform) < 1e-10
+    assert float(result.rms) < 1e-10
+    assert float(result.fitness) == 1.0
+    assert result.history.shape == (int(result.iterations) + 1,)
+
+
+def test_partial_overlap_with_noise_recovers_transform(generator, true_transform):
+    source, target = views(generator, true_transform, noise=0.002)
+    config = ICPConfig(max_distance=0.5, min_distance=0.02, trim_fraction=0.9, max_iterations=80)
+    result = icp.icp(source, target, config=config)
+    assert bool(result.converged)
+    assert rotation_error_deg(result.transform, true_transform) < 0.1
+    assert translation_error(result.transform, true_transform) < 2e-3
+    # Overlap −0.4 < x < 0.5 is roughly 45% of the source's area; trimming keeps 90% of that.
+    assert 0.3 < float(result.fitness) < 0.7
+    assert float(result.rms) < 0.02
+
+
+def test_ungated_icp_is_biased_by_partial_overlap(generator, true_transform):
+    source, target = views(generator, true_transform, noise=0.002)
+    plain = icp.icp(source, target, config=ICPConfig(gate_scale=None, max_iterations=80))
+    gated = icp.icp(
+        source, target, config=ICPConfig(max_distance=0.5, min_distance=0.02, max_iterations=80)
+    )
+    assert rotation_error_deg(plain.transform, true_transform) > 1.0
+    assert rotation_error_deg(gated.transform, true_transform) < 0.1
+
+
+def test_trimming_and_gating_reject_outliers(generator, true_transform):
+    source, target = views(generator, true_transform, noise=0.001)
+    # 30% gross outliers in both clouds, spread over a box around the object.
+    box = lambda n: (torch.rand(n, 3, generator=generator, dtype=F64) - 0.5) * 4  # noqa: E731
+    source = torch.cat((source, box(int(0.3 * len(source)))))
+    target = torch.cat((target, se3.act(true_transform, box(int(0.3 * len(target))))))
+    perm = torch.randperm(len(source), generator=generator)
+    source = source[perm]
+    config = ICPConfig(max_distance=0.5, min_distance=0.02, trim_fraction=0.7, max_iterations=80)
+    result = icp.icp(source, target, config=config)
+    assert rotation_error_deg(result.transform, true_transform) < 0.15
+    assert translation_error(result.transform, true_transform) < 3e-3
+
+
+def test_point_to_plane_converges_fast(generator, true_transform):
+    source, target = views(generator, true_transform, noise=0.001)
+    normals = icp.estimate_normals(target, neighbors=12)
+    config = ICPConfig(
+        method="point_to_plane", max_distance=0.5, min_distance=0.02, trim_fraction=0.9
+    )
+    result = icp.icp(source, target, config=config, target_normals=normals)
+    assert bool(result.converged) and int(result.iterations) < 30
+    assert rotation_error_deg(result.transform, true_transform) < 0.1
+    assert translation_error(result.transform, true_transform) < 2e-3
+    with pytest.raises(ValueError, match="needs 'target_normals'"):
+        icp.icp(source, target, config=config)
+
+
+def test_batch_equals_single_runs(generator, true_transform):
+    source, target = views(generator, true_transform, noise=0.001, count=1200)
+    initial = se3.exp(0.1 * torch.randn(3, 6, generator=generator, dtype=F64))
+    config = ICPConfig(max_distance=0.5, min_distance=0.03, trim_fraction=0.9, max_iterations=15)
+    batch = icp.icp_batch(source, target, initial, config)
+    assert batch.transform.shape == (3, 4, 4) and batch.rms.shape == (3,)
+    assert isinstance(batch.reason, list) and len(batch.reason) == 3
+    for b in range(3):
+        single = icp.icp(source, target, initial[b], config)
+        assert torch.allclose(single.transform, batch.transform[b], atol=1e-12)
+        assert int(single.iterations) == int(batch.iterations[b])
+        assert int(single.status) == int(batch.status[b])
+
+
+def test_large_rotation_needs_multistart(generator):
+    points, _ = surface(2500, generator)
+    T_true = se3.exp(torch.tensor([2.2, -1.0, 1.3, 0.5, 0.3, -0.4], dtype=F64))  # ≈ 154°
+    source = icp.voxel_downsample(points, 0.12)
+    target = icp.voxel_downsample(se3.act(T_true, surface(2500, generator)[0]), 0.12)
+    config = ICPConfig(max_distance=1.0, min_distance=0.1, trim_fraction=0.9, max_iterations=20)
+    start = icp.initial_guesses(source, target, se3.identity(1, dtype=F64)[:, :3, :3])
+    single = icp.icp(source, target, start[0], config)
+    assert rotation_error_deg(single.transform, T_true) > 20
+    guesses = icp.initial_guesses(source, target, icp.rotations_uniform(64))
+    best, runs = icp.icp_multistart(source, target, guesses, config, fitness_distance=0.1)
+    assert runs.transform.shape == (64, 4, 4)
+    assert rotation_error_deg(best.transform, T_true) < 3
+    assert float(best.fitness) > 0.9
+
+
+def test_coarse_to_fine_recovers_large_rotation_precisely(generator):
+    points, _ = surface(6000, generator)
+    T_true = se3.exp(torch.tensor([-0.9, 2.0, 0.7, -0.2, 0.6, 0.3], dtype=F64))
+    target = se3.act(T_true, surface(6000, generator)[0])
+    stages = (
+        icp.Stage(0.15, ICPConfig(max_iterations=8, max_distance=1.0, min_distance=0.15), keep=4),
+        icp.Stage(0.05, ICPConfig(max_iterations=20, max_distance=0.3, min_distance=0.05)),
+        icp.Stage(
+            0.0,
+            ICPConfig(method="point_to_plane", max_distance=0.1, min_distance=0.02),
+            fitness_distance=0.03,
+        ),
+    )
+    guesses = icp.initial_guesses(points, target, icp.rotations_uniform(64))
+    best, per_stage = icp.register_coarse_to_fine(points, target, guesses, stages)
+    assert [r.transform.shape[0] for r in per_stage] == [64, 4, 1]
+    assert rotation_error_deg(best.transform, T_true) < 0.3
+    assert translation_error(best.transform, T_true) < 5e-3
+
+
+def test_status_and_reasons(generator, true_transform):
+    source, target = views(generator, true_transform, count=600)
+    capped = icp.icp(source, target, config=ICPConfig(max_iterations=0))
+    assert int(capped.status) == ICPStatus.MAX_ITERATIONS and not bool(capped.converged)
+    assert capped.reason == "maximum number of iterations reached"
+    assert torch.equal(capped.transform, torch.eye(4, dtype=F64))
+    far = se3.from_rotation_translation(
+        torch.eye(3, dtype=F64), torch.tensor([50.0, 0, 0]).double()
+    )
+    lost = icp.icp(source, target, far, ICPConfig(max_distance=0.1))
+    assert int(lost.status) == ICPStatus.TOO_FEW_CORRESPONDENCES
+    assert lost.reason == "too few correspondences within the gate"
+    assert int(lost.iterations) == 0 and float(lost.fitness) == 0.0
+
+
+def test_input_validation():
+    cloud = torch.zeros(10, 3, dtype=F64)
+    with pytest.raises(ValueError, match="icp_batch: argument 'source' must have shape"):
+        icp.icp(torch.zeros(10, 2, dtype=F64), cloud)
+    with pytest.raises(TypeError, match="icp_batch: 'source' is torch.float64 but 'target'"):
+        icp.icp(cloud, cloud.float())
+    with pytest.raises(ValueError, match="icp: argument 'initial' must have shape \\(4, 4\\)"):
+        icp.icp(cloud, cloud, torch.eye(4, dtype=F64)[None])
+    with pytest.raises(ValueError, match="must hold rotation matrices"):
+        icp.icp(cloud, cloud, 2 * torch.eye(4, dtype=F64))
+    with pytest.raises(ValueError, match="trim_fraction"):
+        ICPConfig(trim_fraction=0.0)
+    with pytest.raises(ValueError, match="unknown method"):
+        ICPConfig(method="point_to_line")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="'keep' must be >= 1"):
+        icp.Stage(0.1, keep=0)
+
+
+# ----------------------------------------------------------------------------- rotations, chains
+
+
+def test_rotations_uniform_cover_so3(generator):
+    R = icp.rotations_uniform(128)
+    assert R.shape == (128, 3, 3) and R.dtype == F64
+    assert torch.allclose(
+        R.transpose(-1, -2) @ R, torch.eye(3, dtype=F64).expand(128, 3, 3), atol=1e-12
+    )
+    assert torch.allclose(torch.linalg.det(R), torch.ones(128, dtype=F64), atol=1e-12)
+    probes = so3.exp(torch.randn(500, 3, generator=generator, dtype=F64) * 2)
+    angles = so3.log(so3.project(probes[:, None].transpose(-1, -2) @ R[None])).norm(dim=-1)
+    nearest = torch.rad2deg(angles.min(-1).values)
+    assert float(nearest.max()) < 45  # covering radius of 128 samples (≈ 30° mean spacing)
+
+
+def test_rotations_about_axis():
+    R = icp.rotations_about_axis(8)
+    assert torch.allclose(R[0], torch.eye(3, dtype=F64))
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=F64)
+    assert torch.allclose(R @ y, y.expand(8, 3), atol=1e-15)
+    assert torch.allclose(so3.log(R[2]), torch.tensor([0.0, math.pi / 2, 0.0], dtype=F64))
+
+
+def test_chain_poses_compose_successive_steps(generator):
+    relative = se3.exp(0.3 * torch.randn(4, 6, generator=generator, dtype=F64))
+    poses = icp.chain_poses(relative)
+    assert poses.shape == (5, 4, 4)
+    assert torch.equal(poses[0], torch.eye(4, dtype=F64))
+    expected = relative[0] @ relative[1] @ relative[2] @ relative[3]
+    assert torch.allclose(poses[4], expected, atol=1e-12)
+    # T̂_0(k+1) = T̂_0k T̂_(k,k+1): scan k+1 → scan k → scan 0.
+    for k in range(4):
+        assert torch.allclose(poses[k + 1], poses[k] @ relative[k], atol=1e-12)

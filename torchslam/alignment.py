@@ -1,0 +1,196 @@
+"""Closed-form rigid alignment of corresponding point sets (weighted Kabsch/Umeyama, no scale).
+
+Given correspondences ``source_k ↔ target_k`` with weights ``w_k ≥ 0``, the rigid transform
+T = [[R, t], [0, 1]] minimizing
+
+    Σ_k w_k ‖target_k − (R source_k + t)‖²
+
+is, with weighted centroids μ_s, μ_t and the weighted cross-covariance
+H = Σ_k w_k (source_k − μ_s)(target_k − μ_t)ᵀ = U S Vᵀ (SVD),
+
+    R = V diag(1, 1, d) Uᵀ,   d = sign det(V Uᵀ),   t = μ_t − R μ_s
+
+(Kabsch 1976; Umeyama 1991 without the scale). The factor d replaces a reflection by the
+best proper rotation (det R = +1). This is the pairwise alignment of the seed's section 0: the
+relative pose T̂_{i+1,i} of successive frames from their shared observations.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchslam import _checks
+
+__all__ = ["weighted_kabsch"]
+
+# A cross-covariance whose second singular value is below this multiple of machine epsilon
+# times the first has rank ≤ 1 (collinear or coincident points): the rotation is not unique.
+_RANK_TOLERANCE = 1e3
+
+
+def _rigid_from_covariance(
+    H: Tensor, mu_source: Tensor, mu_target: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Best rigid transform from a centred cross-covariance (no checks).
+
+    Args:
+        H: Σ w (s − μ_s)(t − μ_t)ᵀ, shape (..., 3, 3).
+        mu_source: weighted source centroids μ_s, shape (..., 3).
+        mu_target: weighted target centroids μ_t, shape (..., 3).
+
+    Returns:
+        (T, S): transforms (..., 4, 4) mapping source to target and the singular values of
+        ``H`` (..., 3), descending (for degeneracy checks).
+    """
+    U, S, Vh = torch.linalg.svd(H)
+    V = Vh.transpose(-1, -2)
+    # d = det(V Uᵀ) = ±1; piecewise constant, so it carries no gradient.
+    d = torch.linalg.det(V.detach() @ U.detach().transpose(-1, -2))
+    one = torch.ones_like(d)
+    D = torch.stack((one, one, torch.where(d < 0, -one, one)), dim=-1)
+    R = (V * D[..., None, :]) @ U.transpose(-1, -2)
+    t = mu_target - (R @ mu_source[..., None]).squeeze(-1)
+    top = torch.cat((R, t[..., None]), dim=-1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom = torch.cat((bottom[..., :3], torch.ones_like(bottom[..., 3:])), dim=-1)
+    return torch.cat((top, bottom), dim=-2), S
+
+
+def _degenerate_spectrum(S: Tensor) -> Tensor:
+    """True where singular values ``S`` (..., 3) of a cross-covariance leave R undetermined.
+
+    The rotation is unique iff rank H ≥ 2 (three or more non-collinear points); the test is
+    S[1] ≤ 1e3 · eps · S[0] (which also catches S = 0).
+    """
+    tol = _RANK_TOLERANCE * torch.finfo(S.dtype).eps
+    return S[..., 1] <= tol * S[..., 0]
+
+
+def weighted_kabsch(
+    source: Tensor,
+    target: Tensor,
+    weights: Tensor | None = None,
+    mask: Tensor | None = None,
+) -> Tensor:
+    """Rigid transform minimizing Σ_k w_k ‖target_k − (R source_k + t)‖² (weighted Kabsch).
+
+    Closed form via the SVD of the weighted cross-covariance with a reflection fix, so the
+    result always has det R = +1 (module docstring). Batched over leading dims;
+    differentiable w.r.t. ``source``, ``target`` and ``weights`` wherever the singular values
+    of the cross-covariance are distinct (generic, non-degenerate input).
+
+    Args:
+        source: points in the source frame, shape (..., N, 3).
+        target: corresponding points in the target frame, shape (..., N, 3).
+        weights: non-negative weights w_k, shape broadcastable to (..., N); ``None`` means 1.
+        mask: bool, shape broadcastable to (..., N); ``False`` entries (padding) are ignored
+            entirely (their coordinates may hold anything, NaN included). ``None`` keeps all.
+
+    Returns:
+        T = [[R, t], [0, 1]] mapping source coordinates to target coordinates,
+        target ≈ R source + t, shape (..., 4, 4), same dtype and device as ``source``.
+
+    Raises:
+        ValueError: on shape mismatches; and, when value checks are active (eager mode,
+            validation on), if a problem has fewer than 3 points with positive weight, if a
+            weight is negative, if a kept coordinate is not finite, or if the kept points are
+            degenerate (collinear or coincident: the rotation is not unique).
+        TypeError: on non-float or mixed dtypes, or a non-bool ``mask``.
+    """
+    fn = "weighted_kabsch"
+    for name, x in (("source", source), ("target", target)):
+        _checks.check_tensor(fn, name, x, (3,))
+        if x.dim() < 2:
+            raise ValueError(
+                f"{fn}: argument '{name}' must have shape (..., N, 3), got {tuple(x.shape)}"
+            )
+    _checks.check_same_kind(fn, source=source, target=target)
+    if source.shape != target.shape:
+        raise ValueError(
+            f"{fn}: 'source' and 'target' must have the same shape (..., N, 3), got "
+            f"{tuple(source.shape)} and {tuple(target.shape)}"
+        )
+    points_shape = source.shape[:-1]
+    keep = torch.ones(points_shape, dtype=torch.bool, device=source.device)
+    if mask is not None:
+        _checks.check_tensor(fn, "mask", mask, (), floating=False)
+        if mask.dtype != torch.bool:
+            raise TypeError(f"{fn}: argument 'mask' must be a bool tensor, got {mask.dtype}")
+        _check_broadcasts_to(fn, "mask", mask, points_shape)
+        keep = keep & mask
+    if weights is not None:
+        _checks.check_tensor(fn, "weights", weights, ())
+        _checks.check_same_kind(fn, source=source, weights=weights)
+        _check_broadcasts_to(fn, "weights", weights, points_shape)
+        w = torch.where(keep, weights, torch.zeros_like(weights))
+    else:
+        w = keep.to(source.dtype)
+    w = w.expand(points_shape)
+
+    if _checks.value_checks_active():
+        _check_values(fn, source, target, weights, keep, w)
+
+    T, S = _weighted_kabsch(source, target, w, keep)
+
+    if _checks.value_checks_active():
+        bad = _degenerate_spectrum(S.detach())
+        if bool(bad.any()):
+            idx = tuple(int(i) for i in bad.nonzero()[0].tolist())
+            raise ValueError(
+                f"{fn}: the weighted points of problem {idx} are degenerate (collinear or "
+                f"coincident; singular values of the cross-covariance {S[idx].tolist()}), so "
+                "the rotation is not unique"
+            )
+    return T
+
+
+def _check_broadcasts_to(fn: str, name: str, x: Tensor, shape: torch.Size) -> None:
+    try:
+        ok = torch.broadcast_shapes(x.shape, shape) == shape
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise ValueError(
+            f"{fn}: argument '{name}' must have a shape broadcastable to {tuple(shape)} "
+            f"(the leading dims of 'source'), got {tuple(x.shape)}"
+        )
+
+
+def _check_values(
+    fn: str, source: Tensor, target: Tensor, weights: Tensor | None, keep: Tensor, w: Tensor
+) -> None:
+    for name, x in (("source", source), ("target", target)):
+        kept = torch.where(keep[..., None], x.detach(), torch.zeros_like(x.detach()))
+        _checks.check_finite(fn, name, kept)
+    if weights is not None:
+        _checks.check_finite(fn, "weights", weights)
+        negative = weights.detach() < 0
+        if bool(negative.any()):
+            idx = tuple(int(i) for i in negative.nonzero()[0].tolist())
+            raise ValueError(f"{fn}: argument 'weights' must be >= 0, got a negative at {idx}")
+    count = (w.detach() > 0).sum(-1)
+    few = count < 3
+    if bool(few.any()):
+        idx = tuple(int(i) for i in few.nonzero()[0].tolist())
+        raise ValueError(
+            f"{fn}: problem {idx} has {int(count[idx])} point(s) with positive weight "
+            "(after the mask); a rigid alignment needs at least 3 non-collinear points"
+        )
+
+
+def _weighted_kabsch(
+    source: Tensor, target: Tensor, w: Tensor, keep: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Unchecked core of :func:`weighted_kabsch`; returns (T, singular values)."""
+    zeros = torch.zeros_like(source)
+    s = torch.where(keep[..., None], source, zeros)
+    t = torch.where(keep[..., None], target, zeros)
+    total = w.sum(-1, keepdim=True)
+    total = torch.where(total > 0, total, torch.ones_like(total))
+    mu_s = (w[..., None] * s).sum(-2) / total
+    mu_t = (w[..., None] * t).sum(-2) / total
+    s_centred = s - mu_s[..., None, :]
+    t_centred = t - mu_t[..., None, :]
+    H = (s_centred * w[..., None]).transpose(-1, -2) @ t_centred
+    return _rigid_from_covariance(H, mu_s, mu_t)

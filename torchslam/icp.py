@@ -1,0 +1,716 @@
+"""ICP front end: voxel downsampling, normals, nearest neighbours, pairwise ICP, pose chaining.
+
+The pairwise alignment of the seed's section 0: for successive frames, ICP estimates the
+relative pose T̂ that maps the source cloud into the target frame (p' = R p + t), and chaining
+the relative poses gives the initial T̂_0i = T̂_01 T̂_12 ⋯ T̂_(i−1,i) of seed eq. (0.1).
+
+Point-to-point ICP alternates nearest-neighbour correspondences (a KD-tree, never an O(N·M)
+distance matrix) with the closed-form weighted Kabsch solution
+(:func:`torchslam.alignment.weighted_kabsch`). Outliers and non-overlapping parts are handled
+by a distance gate that shrinks with the inlier RMS error and by trimming (keeping only the
+best fraction of the gated correspondences, as in trimmed ICP). Point-to-plane ICP minimizes
+Σ (n_q · (R p + t − q))² with target normals from PCA over k nearest neighbours.
+
+Several initial guesses are run together as one batch (one KD-tree query and one batched
+Kabsch per iteration for all of them); :func:`icp_multistart` keeps the one with the best
+fitness. The ICP loop runs on the host (scipy's KD-tree); it is not meant for jacrev or vmap.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from torchslam import _checks
+from torchslam.alignment import weighted_kabsch
+from torchslam.lie import convert, se3, so3
+
+__all__ = [
+    "ICPConfig",
+    "ICPResult",
+    "ICPStatus",
+    "Stage",
+    "chain_poses",
+    "estimate_normals",
+    "icp",
+    "icp_batch",
+    "icp_multistart",
+    "initial_guesses",
+    "nearest_neighbors",
+    "register_coarse_to_fine",
+    "rotations_about_axis",
+    "rotations_uniform",
+    "voxel_downsample",
+]
+
+
+# ----------------------------------------------------------------------------- preprocessing
+
+
+def voxel_downsample(points: Tensor, voxel_size: float) -> Tensor:
+    """Replace the points of each occupied voxel by their centroid (vectorized).
+
+    Voxels are the cells of a grid of pitch ``voxel_size`` anchored at the minimum corner of
+    the cloud. The output is sorted by voxel index (deterministic).
+
+    Args:
+        points: cloud, shape (N, 3), N ≥ 1.
+        voxel_size: grid pitch, > 0, in the units of ``points``.
+
+    Returns:
+        Centroids, shape (M, 3) with M ≤ N, same dtype and device as ``points``.
+    """
+    fn = "voxel_downsample"
+    _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=1)
+    if points.dim() != 2:
+        raise ValueError(f"{fn}: argument 'points' must have shape (N, 3), got {points.shape}")
+    if not voxel_size > 0:
+        raise ValueError(f"{fn}: argument 'voxel_size' must be > 0, got {voxel_size}")
+    if points.shape[0] == 0:
+        return points.clone()
+    cells = torch.floor((points - points.amin(0)) / voxel_size).to(torch.int64)
+    extent = cells.amax(0) + 1
+    key = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    _, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
+    sums = points.new_zeros(counts.shape[0], 3).index_add_(0, inverse, points)
+    return sums / counts[:, None].to(points.dtype)
+
+
+def _tree(points: Tensor) -> cKDTree:
+    return cKDTree(points.detach().cpu().numpy().astype(np.float64, copy=False))
+
+
+def nearest_neighbors(
+    query: Tensor, reference: Tensor, max_distance: float | None = None
+) -> tuple[Tensor, Tensor]:
+    """Nearest reference point of every query point, with a KD-tree (scipy cKDTree).
+
+    Args:
+        query: points, shape (..., 3).
+        reference: points, shape (M, 3), M ≥ 1.
+        max_distance: if given, neighbours farther than this are reported as missing.
+
+    Returns:
+        ``(distances, indices)``, each of shape (...); distances in ``query``'s dtype,
+        indices int64. A missing neighbour has distance ``inf`` and index −1.
+    """
+    fn = "nearest_neighbors"
+    _checks.check_tensor(fn, "query", query, (3,))
+    _checks.check_tensor(fn, "reference", reference, (3,), min_batch_dims=1)
+    if reference.dim() != 2 or reference.shape[0] == 0:
+        raise ValueError(
+            f"{fn}: argument 'reference' must have shape (M, 3) with M ≥ 1, got "
+            f"{tuple(reference.shape)}"
+        )
+    return _query(_tree(reference), query, max_distance)
+
+
+def _query(
+    tree: cKDTree, query: Tensor, max_distance: float | None, k: int = 1
+) -> tuple[Tensor, Tensor]:
+    flat = query.detach().reshape(-1, 3).cpu().numpy()
+    bound = np.inf if max_distance is None else float(max_distance)
+    distance, index = tree.query(flat, k=k, distance_upper_bound=bound)
+    index = np.where(np.isfinite(distance), index, -1)
+    shape = (*query.shape[:-1], k) if k > 1 else query.shape[:-1]
+    distance_t = torch.from_numpy(np.asarray(distance)).to(query.dtype).reshape(shape)
+    index_t = torch.from_numpy(np.asarray(index, dtype=np.int64)).reshape(shape)
+    return distance_t.to(query.device), index_t.to(query.device)
+
+
+def estimate_normals(
+    points: Tensor, neighbors: int = 16, viewpoint: Tensor | None = None
+) -> Tensor:
+    """Unit surface normals by PCA over the k nearest neighbours of each point.
+
+    The normal is the eigenvector of the smallest eigenvalue of the neighbourhood covariance.
+    Its sign is arbitrary unless ``viewpoint`` is given, in which case every normal is flipped
+    to point towards it (e.g. the scanner position).
+
+    Args:
+        points: cloud, shape (N, 3), N ≥ 3.
+        neighbors: k, the neighbourhood size including the point itself, 3 ≤ k ≤ N.
+        viewpoint: optional position, shape (3,).
+
+    Returns:
+        Normals, shape (N, 3), unit length, same dtype and device as ``points``.
+    """
+    fn = "estimate_normals"
+    _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=1)
+    if points.dim() != 2:
+        raise ValueError(f"{fn}: argument 'points' must have shape (N, 3), got {points.shape}")
+    if not 3 <= neighbors <= points.shape[0]:
+        raise ValueError(
+            f"{fn}: argument 'neighbors' must lie in [3, N = {points.shape[0]}], got {neighbors}"
+        )
+    _, index = _query(_tree(points), points, None, k=neighbors)
+    local = points[index]  # (N, k, 3)
+    centred = local - local.mean(-2, keepdim=True)
+    covariance = centred.transpose(-1, -2) @ centred
+    _, vectors = torch.linalg.eigh(covariance)  # ascending eigenvalues
+    normals = vectors[..., 0]
+    if viewpoint is not None:
+        _checks.check_tensor(fn, "viewpoint", viewpoint, (3,))
+        _checks.check_same_kind(fn, points=points, viewpoint=viewpoint)
+        facing = ((viewpoint - points) * normals).sum(-1, keepdim=True)
+        normals = torch.where(facing < 0, -normals, normals)
+    return normals
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class ICPConfig:
+    """Options of :func:`icp`. Distances are in the units of the clouds (metres for the bunny).
+
+    The gate of iteration k is g_k = clamp(gate_scale · rms_(k−1), min_distance, g_(k−1)),
+    starting from g_0 = max_distance: it never grows, and it shrinks with the inlier RMS error.
+    Of the gated correspondences, the ``trim_fraction`` with the smallest distances are kept.
+    """
+
+    # "point_to_point" (closed-form weighted Kabsch) or "point_to_plane" (needs target normals)
+    method: Literal["point_to_point", "point_to_plane"] = "point_to_point"
+    # upper bound on the number of pose updates
+    max_iterations: int = 50
+    # converged when |rms_(k−1) − rms_k| ≤ relative_tolerance · rms_(k−1)
+    relative_tolerance: float = 1e-6
+    # initial correspondence gate g_0; None means no gate
+    max_distance: float | None = None
+    # floor of the gate, so that it cannot shrink below the noise level
+    min_distance: float = 0.0
+    # the gate follows gate_scale × inlier RMS; None keeps g_0 fixed
+    gate_scale: float | None = 3.0
+    # fraction (0, 1] of the gated correspondences kept, those with the smallest distances
+    trim_fraction: float = 1.0
+    # fewer inlier correspondences than this stops the iteration with a failure status
+    min_correspondences: int = 6
+
+    def __post_init__(self) -> None:
+        if self.method not in ("point_to_point", "point_to_plane"):
+            raise ValueError(f"ICPConfig: unknown method {self.method!r}")
+        if self.max_iterations < 0:
+            raise ValueError("ICPConfig: 'max_iterations' must be >= 0")
+        if self.relative_tolerance < 0:
+            raise ValueError("ICPConfig: 'relative_tolerance' must be >= 0")
+        if self.max_distance is not None and not self.max_distance > 0:
+            raise ValueError("ICPConfig: 'max_distance' must be > 0 or None")
+        if self.min_distance < 0:
+            raise ValueError("ICPConfig: 'min_distance' must be >= 0")
+        if self.gate_scale is not None and not self.gate_scale > 0:
+            raise ValueError("ICPConfig: 'gate_scale' must be > 0 or None")
+        if not 0 < self.trim_fraction <= 1:
+            raise ValueError("ICPConfig: 'trim_fraction' must lie in (0, 1]")
+        if self.min_correspondences < 3:
+            raise ValueError("ICPConfig: 'min_correspondences' must be >= 3")
+
+
+class ICPStatus(enum.IntEnum):
+    """Why an ICP run stopped."""
+
+    RUNNING = 0
+    CONVERGED = 1
+    MAX_ITERATIONS = 2
+    TOO_FEW_CORRESPONDENCES = 3
+
+
+_REASONS = {
+    ICPStatus.RUNNING: "not finished",
+    ICPStatus.CONVERGED: "relative change of the RMS error below tolerance",
+    ICPStatus.MAX_ITERATIONS: "maximum number of iterations reached",
+    ICPStatus.TOO_FEW_CORRESPONDENCES: "too few correspondences within the gate",
+}
+
+
+@dataclass
+class ICPResult:
+    """Result of ICP for one or a batch of initial guesses (batch shape ``(...)``).
+
+    For a single run (``icp``) the batch shape is ``()`` and :attr:`reason` is one string.
+    """
+
+    # T mapping source points into the target frame, target ≈ R source + t, shape (..., 4, 4)
+    transform: Tensor
+    # RMS distance over the inlier correspondences at the final transform, shape (...)
+    rms: Tensor
+    # fraction of source points that are inliers (gated and kept) at the final transform
+    fitness: Tensor
+    # correspondence gate in force at the end, shape (...) (inf when ungated)
+    gate: Tensor
+    # number of pose updates performed, int64, shape (...)
+    iterations: Tensor
+    # ICPStatus values, int64, shape (...)
+    status: Tensor
+    # inlier RMS before each update, one row per iteration, shape (iterations + 1, ...)
+    history: Tensor = field(repr=False)
+
+    @property
+    def converged(self) -> Tensor:
+        """True where the relative change of the RMS error fell below tolerance, shape (...)."""
+        return self.status == ICPStatus.CONVERGED
+
+    @property
+    def reason(self) -> str | list[str]:
+        """Why each run stopped: a string for a single run, a flat list for a batch."""
+        codes = [ICPStatus(int(c)) for c in self.status.reshape(-1)]
+        if self.status.dim() == 0:
+            return _REASONS[codes[0]]
+        return [_REASONS[c] for c in codes]
+
+    def __getitem__(self, index: int) -> ICPResult:
+        """The result of one batch entry (batch shape (B,) → ())."""
+        return ICPResult(
+            self.transform[index],
+            self.rms[index],
+            self.fitness[index],
+            self.gate[index],
+            self.iterations[index],
+            self.status[index],
+            self.history[:, index],
+        )
+
+
+# ----------------------------------------------------------------------------- ICP
+
+
+def _check_clouds(fn: str, source: Tensor, target: Tensor) -> None:
+    for name, x in (("source", source), ("target", target)):
+        _checks.check_tensor(fn, name, x, (3,), min_batch_dims=1)
+        if x.dim() != 2 or x.shape[0] < 3:
+            raise ValueError(
+                f"{fn}: argument '{name}' must have shape (N, 3) with N ≥ 3, got {tuple(x.shape)}"
+            )
+    _checks.check_same_kind(fn, source=source, target=target)
+
+
+def _move(T: Tensor, points: Tensor) -> Tensor:
+    """R p + t for every pose and point: T (B, 4, 4), points (N, 3) → (B, N, 3)."""
+    return points @ T[:, :3, :3].transpose(-1, -2) + T[:, None, :3, 3]
+
+
+def _inlier_mask(distance: Tensor, gate: Tensor, trim_fraction: float) -> Tensor:
+    """Gated (distance ≤ gate) and trimmed (smallest fraction) correspondences, (B, N)."""
+    gated = distance <= gate[:, None]
+    if trim_fraction >= 1.0:
+        return gated
+    masked = torch.where(gated, distance, torch.full_like(distance, math.inf))
+    ordered, _ = masked.sort(dim=-1)
+    keep = torch.ceil(gated.sum(-1).to(distance.dtype) * trim_fraction).to(torch.int64)
+    position = (keep - 1).clamp_min(0)
+    threshold = ordered.gather(-1, position[:, None])
+    return gated & (distance <= threshold) & (keep[:, None] > 0)
+
+
+def _point_to_plane_step(moved: Tensor, matched: Tensor, normals: Tensor, mask: Tensor) -> Tensor:
+    """Left increment exp(δ) minimizing Σ (n · (exp(δ) p − q))² to first order, (B, 4, 4).
+
+    With p' ≈ p + ω × p + v: r = n·(p − q) + (p × n)·ω + n·v, J = [p × n, n], δ = (ω, v).
+    """
+    w = mask.to(moved.dtype)[..., None]
+    residual = ((moved - matched) * normals).sum(-1, keepdim=True)
+    J = torch.cat((torch.linalg.cross(moved, normals), normals), dim=-1)  # (B, N, 6)
+    H = (J * w).transpose(-1, -2) @ J
+    g = (J * w).transpose(-1, -2) @ residual
+    # A tiny ridge keeps H invertible for planar overlaps (unconstrained directions stay put).
+    ridge = 1e-12 * H.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)[:, None, None]
+    eye = torch.eye(6, dtype=H.dtype, device=H.device)
+    delta = -torch.linalg.solve(H + ridge * eye, g).squeeze(-1)
+    return se3.exp(delta)
+
+
+def icp_batch(
+    source: Tensor,
+    target: Tensor,
+    initial: Tensor,
+    config: ICPConfig | None = None,
+    target_normals: Tensor | None = None,
+) -> ICPResult:
+    """ICP from several initial guesses at once (one KD-tree query per iteration for all).
+
+    Each run stops on its own (convergence, max iterations, too few correspondences); the
+    loop ends when all have stopped. Runs are independent: the result of one entry equals
+    :func:`icp` from that initial guess.
+
+    Args:
+        source: cloud to move, shape (N, 3).
+        target: fixed cloud, shape (M, 3), same dtype and device.
+        initial: initial guesses of T (source → target frame), shape (B, 4, 4).
+        config: options; ``ICPConfig()`` by default.
+        target_normals: unit normals of ``target``, shape (M, 3); required for
+            ``method="point_to_plane"`` (see :func:`estimate_normals`).
+
+    Returns:
+        :class:`ICPResult` with batch shape (B,).
+    """
+    fn = "icp_batch"
+    config = ICPConfig() if config is None else config
+    _check_clouds(fn, source, target)
+    _checks.check_tensor(fn, "initial", initial, (4, 4))
+    if initial.dim() != 3:
+        raise ValueError(f"{fn}: argument 'initial' must have shape (B, 4, 4), got {initial.shape}")
+    _checks.check_same_kind(fn, source=source, initial=initial)
+    _checks.check_pose_matrix(fn, "initial", initial)
+    if config.method == "point_to_plane":
+        if target_normals is None:
+            raise ValueError(f"{fn}: method 'point_to_plane' needs 'target_normals'")
+        _checks.check_tensor(fn, "target_normals", target_normals, (3,))
+        if target_normals.shape != target.shape:
+            raise ValueError(
+                f"{fn}: 'target_normals' must have the shape of 'target' {tuple(target.shape)}, "
+                f"got {tuple(target_normals.shape)}"
+            )
+        _checks.check_same_kind(fn, target=target, target_normals=target_normals)
+    with _checks.validation(False):
+        return _icp_loop(source, target, initial, config, target_normals)
+
+
+def _icp_loop(
+    source: Tensor,
+    target: Tensor,
+    initial: Tensor,
+    config: ICPConfig,
+    target_normals: Tensor | None,
+) -> ICPResult:
+    batch = initial.shape[0]
+    n = source.shape[0]
+    tree = _tree(target)
+    T = initial.clone()
+    infinite = math.inf if config.max_distance is None else config.max_distance
+    gate = source.new_full((batch,), infinite)
+    status = torch.full((batch,), int(ICPStatus.RUNNING), dtype=torch.int64)
+    iterations = torch.zeros(batch, dtype=torch.int64)
+    previous_rms = source.new_full((batch,), math.inf)
+    history: list[Tensor] = []
+    zero = source.new_zeros(())
+
+    def correspondences(T: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        moved = _move(T, source)
+        bound = float(gate.max()) if bool(torch.isfinite(gate).all()) else None
+        distance, index = _query(tree, moved, bound)
+        mask = _inlier_mask(distance, gate, config.trim_fraction)
+        count = mask.sum(-1)
+        squared = torch.where(mask, distance, zero) ** 2
+        rms = torch.sqrt(squared.sum(-1) / count.clamp_min(1).to(source.dtype))
+        return moved, index, mask, rms
+
+    while True:
+        moved, index, mask, rms = correspondences(T, gate)
+        count = mask.sum(-1)
+        history.append(rms)
+        running = status == ICPStatus.RUNNING
+        few = running & (count < config.min_correspondences)
+        status[few] = int(ICPStatus.TOO_FEW_CORRESPONDENCES)
+        change = (previous_rms - rms).abs()
+        settled = torch.isfinite(previous_rms) & (
+            change <= config.relative_tolerance * previous_rms
+        )
+        # An exact fit (rms = 0) needs no update.
+        settled = running & ~few & (settled | (rms == 0))
+        status[settled] = int(ICPStatus.CONVERGED)
+        capped = (status == ICPStatus.RUNNING) & (iterations >= config.max_iterations)
+        status[capped] = int(ICPStatus.MAX_ITERATIONS)
+        active = status == ICPStatus.RUNNING
+        if not bool(active.any()):
+            break
+        safe_index = index.clamp_min(0)
+        matched = target[safe_index]  # (B, N, 3); unmatched rows are masked out
+        if config.method == "point_to_point":
+            # Absolute solve from the original source: no drift from composing increments.
+            T_new = weighted_kabsch(source.expand(batch, n, 3), matched, mask=mask)
+        else:
+            assert target_normals is not None
+            step = _point_to_plane_step(moved, matched, target_normals[safe_index], mask)
+            T_new = se3.compose(step, T)
+        T = torch.where(active[:, None, None], T_new, T)
+        iterations += active.to(torch.int64)
+        previous_rms = torch.where(active, rms, previous_rms)
+        if config.gate_scale is not None:
+            shrunk = torch.clamp(config.gate_scale * rms, min=config.min_distance)
+            gate = torch.where(active, torch.minimum(gate, shrunk), gate)
+
+    _, _, mask, rms = correspondences(T, gate)
+    fitness = mask.sum(-1).to(source.dtype) / n
+    return ICPResult(T, rms, fitness, gate, iterations, status, torch.stack(history))
+
+
+def icp(
+    source: Tensor,
+    target: Tensor,
+    initial: Tensor | None = None,
+    config: ICPConfig | None = None,
+    target_normals: Tensor | None = None,
+) -> ICPResult:
+    """Register ``source`` to ``target``: find T with target ≈ R source + t.
+
+    Iteration k: move the source by T_k, find each point's nearest target point (KD-tree),
+    keep the gated and trimmed correspondences (:class:`ICPConfig`), stop if the inlier RMS
+    changed by at most ``relative_tolerance`` relative to the previous iteration, else solve
+    for T_(k+1) in closed form (weighted Kabsch over the kept pairs) or, for point-to-plane,
+    by one Gauss–Newton step on the linearized plane distances (left update exp(δ) T_k).
+
+    Args:
+        source: cloud to move, shape (N, 3).
+        target: fixed cloud, shape (M, 3), same dtype and device.
+        initial: initial T, shape (4, 4); identity by default.
+        config: options; ``ICPConfig()`` by default.
+        target_normals: unit normals of ``target``, shape (M, 3), for point-to-plane.
+
+    Returns:
+        :class:`ICPResult` with batch shape (): ``transform`` (4, 4), scalar ``rms``,
+        ``fitness``, ``iterations``, ``converged`` and a ``reason`` string.
+        Non-convergence is reported in ``status``, not raised.
+    """
+    if initial is None:
+        initial = se3.identity(dtype=source.dtype, device=source.device)
+    _checks.check_tensor("icp", "initial", initial, (4, 4))
+    if initial.dim() != 2:
+        raise ValueError(f"icp: argument 'initial' must have shape (4, 4), got {initial.shape}")
+    return icp_batch(source, target, initial[None], config, target_normals)[0]
+
+
+def rotations_about_axis(
+    count: int, axis: Tensor | None = None, *, dtype: torch.dtype = torch.float64
+) -> Tensor:
+    """``count`` rotations by 2πk/count, k = 0 … count−1, about a fixed axis.
+
+    Args:
+        count: number of rotations, ≥ 1.
+        axis: rotation axis, shape (3,); the y axis (the turntable axis of the Stanford
+            scans) by default.
+        dtype: dtype of the result when ``axis`` is None.
+
+    Returns:
+        Rotation matrices, shape (count, 3, 3); the first is the identity.
+    """
+    if count < 1:
+        raise ValueError(f"rotations_about_axis: 'count' must be >= 1, got {count}")
+    if axis is None:
+        axis = torch.tensor([0.0, 1.0, 0.0], dtype=dtype)
+    _checks.check_tensor("rotations_about_axis", "axis", axis, (3,))
+    unit = axis / torch.linalg.vector_norm(axis)
+    angles = torch.arange(count, dtype=axis.dtype, device=axis.device) * (2 * math.pi / count)
+    return so3.exp(angles[:, None] * unit)
+
+
+def rotations_uniform(
+    count: int, *, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+) -> Tensor:
+    """``count`` nearly uniformly spread rotations (deterministic super-Fibonacci spiral).
+
+    Alexa, "Super-Fibonacci Spirals: Fast, Low-Discrepancy Sampling of SO(3)", CVPR 2022.
+    The spacing between neighbours is about (3π / (4·count))^(1/3) · 2 radians (≈ 30° for
+    count = 128, ≈ 24° for 256).
+
+    Args:
+        count: number of rotations, ≥ 1.
+
+    Returns:
+        Rotation matrices, shape (count, 3, 3).
+    """
+    if count < 1:
+        raise ValueError(f"rotations_uniform: 'count' must be >= 1, got {count}")
+    phi = math.sqrt(2.0)
+    psi = 1.533751168755204288118041
+    s = torch.arange(count, dtype=torch.float64) + 0.5
+    r = torch.sqrt(s / count)
+    big_r = torch.sqrt(1.0 - s / count)
+    alpha = 2 * math.pi * s / phi
+    beta = 2 * math.pi * s / psi
+    # (x, y, z, w) of the paper, reordered to Hamilton (w, x, y, z).
+    q = torch.stack(
+        (
+            big_r * torch.cos(beta),
+            r * torch.sin(alpha),
+            r * torch.cos(alpha),
+            big_r * torch.sin(beta),
+        ),
+        dim=-1,
+    )
+    R = convert.quaternion_to_matrix(q)
+    return R.to(dtype=dtype, device=device)
+
+
+def initial_guesses(source: Tensor, target: Tensor, rotations: Tensor) -> Tensor:
+    """Initial transforms T = [[R, c_t − R c_s], [0, 1]] that map the source centroid c_s
+    onto the target centroid c_t after each rotation R.
+
+    Args:
+        source: cloud, shape (N, 3).
+        target: cloud, shape (M, 3).
+        rotations: rotation matrices, shape (B, 3, 3).
+
+    Returns:
+        Transforms, shape (B, 4, 4).
+    """
+    fn = "initial_guesses"
+    _check_clouds(fn, source, target)
+    _checks.check_tensor(fn, "rotations", rotations, (3, 3))
+    _checks.check_same_kind(fn, source=source, rotations=rotations)
+    c_s = source.mean(0)
+    c_t = target.mean(0)
+    t = c_t - rotations @ c_s
+    return se3.from_rotation_translation(rotations, t)
+
+
+def icp_multistart(
+    source: Tensor,
+    target: Tensor,
+    initial: Tensor,
+    config: ICPConfig | None = None,
+    fitness_distance: float | None = None,
+    target_normals: Tensor | None = None,
+) -> tuple[ICPResult, ICPResult]:
+    """Run ICP from every initial guess and keep the best.
+
+    Runs are compared on one fixed yardstick (their own gates differ): the fraction of
+    source points whose nearest target point lies within ``fitness_distance`` at the final
+    transform; ties go to the lower RMS over those points.
+
+    Args:
+        source: cloud to move, shape (N, 3).
+        target: fixed cloud, shape (M, 3).
+        initial: initial guesses, shape (B, 4, 4) (e.g. :func:`initial_guesses`).
+        config: ICP options.
+        fitness_distance: yardstick distance; ``config.min_distance`` if None (then it must
+            be > 0).
+        target_normals: for point-to-plane.
+
+    Returns:
+        ``(best, all_runs)``: the best run (batch shape ()) and every run (batch shape (B,)).
+        ``best.fitness`` and ``best.rms`` are measured at ``fitness_distance``.
+    """
+    config = ICPConfig() if config is None else config
+    distance = config.min_distance if fitness_distance is None else fitness_distance
+    if not distance > 0:
+        raise ValueError("icp_multistart: 'fitness_distance' (or config.min_distance) must be > 0")
+    runs = icp_batch(source, target, initial, config, target_normals)
+    best, _ = _select(runs, source, target, distance)
+    return best, runs
+
+
+def _select(
+    runs: ICPResult, source: Tensor, target: Tensor, distance: float
+) -> tuple[ICPResult, Tensor]:
+    """The best run by fitness at ``distance`` (then RMS), and the ranking of all runs."""
+    fitness, rms = _fitness(runs.transform, source, target, distance)
+    # Stable lexicographic order: sort by RMS first, then stably by descending fitness.
+    by_rms = torch.argsort(rms, stable=True)
+    order = by_rms[torch.argsort(-fitness[by_rms], stable=True)]
+    best = int(order[0])
+    chosen = runs[best]
+    chosen.fitness = fitness[best]
+    chosen.rms = rms[best]
+    chosen.gate = source.new_tensor(distance)
+    return chosen, order
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One level of :func:`register_coarse_to_fine`."""
+
+    # downsampling pitch of both clouds at this level (voxel_downsample); 0 keeps them
+    voxel_size: float
+    # ICP options at this level
+    config: ICPConfig = field(default_factory=ICPConfig)
+    # number of hypotheses passed on to the next level: the best by fitness
+    keep: int = 1
+    # distance of the fitness yardstick used for ranking; voxel_size if None
+    fitness_distance: float | None = None
+    # k of the PCA normals of the target, used by point-to-plane levels
+    normal_neighbors: int = 12
+
+    def __post_init__(self) -> None:
+        if self.voxel_size < 0:
+            raise ValueError("Stage: 'voxel_size' must be >= 0")
+        if self.keep < 1:
+            raise ValueError("Stage: 'keep' must be >= 1")
+        if self.fitness_distance is None and self.voxel_size == 0:
+            raise ValueError("Stage: give 'fitness_distance' when 'voxel_size' is 0")
+
+
+def register_coarse_to_fine(
+    source: Tensor, target: Tensor, initial: Tensor, stages: tuple[Stage, ...] | list[Stage]
+) -> tuple[ICPResult, list[ICPResult]]:
+    """Multi-hypothesis, coarse-to-fine ICP.
+
+    Level l downsamples both clouds to ``stages[l].voxel_size``, runs ICP from every
+    surviving hypothesis (one batch), ranks the runs by fitness at the level's yardstick
+    distance (as :func:`icp_multistart`) and passes the best ``keep`` transforms on. A wide
+    set of initial rotations (:func:`rotations_uniform` with :func:`initial_guesses`) at a
+    coarse level followed by a few finer levels handles initial misalignments far outside
+    the basin of plain ICP at a fraction of the cost of running all hypotheses finely.
+
+    Args:
+        source: cloud to move, shape (N, 3).
+        target: fixed cloud, shape (M, 3).
+        initial: initial guesses of T (source → target frame), shape (B, 4, 4).
+        stages: the levels, coarse to fine; the last one's result is returned.
+
+    Returns:
+        ``(best, per_stage)``: the best run of the last level (batch shape (), with
+        ``fitness``/``rms`` at that level's yardstick) and every level's batch of runs.
+    """
+    fn = "register_coarse_to_fine"
+    _check_clouds(fn, source, target)
+    _checks.check_tensor(fn, "initial", initial, (4, 4))
+    if initial.dim() != 3:
+        raise ValueError(f"{fn}: argument 'initial' must have shape (B, 4, 4), got {initial.shape}")
+    if len(stages) == 0:
+        raise ValueError(f"{fn}: 'stages' must not be empty")
+    hypotheses = initial
+    per_stage: list[ICPResult] = []
+    best: ICPResult | None = None
+    for stage in stages:
+        src = voxel_downsample(source, stage.voxel_size) if stage.voxel_size > 0 else source
+        tgt = voxel_downsample(target, stage.voxel_size) if stage.voxel_size > 0 else target
+        normals = None
+        if stage.config.method == "point_to_plane":
+            normals = estimate_normals(tgt, min(stage.normal_neighbors, tgt.shape[0]))
+        distance = stage.voxel_size if stage.fitness_distance is None else stage.fitness_distance
+        runs = icp_batch(src, tgt, hypotheses, stage.config, normals)
+        best, order = _select(runs, src, tgt, distance)
+        per_stage.append(runs)
+        hypotheses = runs.transform[order[: stage.keep]]
+    assert best is not None
+    return best, per_stage
+
+
+def _fitness(T: Tensor, source: Tensor, target: Tensor, distance: float) -> tuple[Tensor, Tensor]:
+    """Fraction of source points within ``distance`` of the target and their RMS, (B,) each."""
+    d, _ = _query(_tree(target), _move(T, source), distance)
+    inside = torch.isfinite(d)
+    fitness = inside.to(source.dtype).mean(-1)
+    squared = torch.where(inside, d, torch.zeros_like(d)) ** 2
+    rms = torch.sqrt(squared.sum(-1) / inside.sum(-1).clamp_min(1).to(source.dtype))
+    return fitness, rms
+
+
+def chain_poses(relative: Tensor) -> Tensor:
+    """Chain successive relative poses into poses in the frame of the first scan.
+
+    ``relative[k]`` maps scan k+1 into scan k (the ICP result with source = scan k+1 and
+    target = scan k, T̂_(k,k+1)). Then T̂_0i = T̂_01 T̂_12 ⋯ T̂_(i−1,i) (seed eq. (0.1)) maps
+    scan i into scan 0.
+
+    Args:
+        relative: shape (M − 1, 4, 4).
+
+    Returns:
+        Poses T̂_0i, shape (M, 4, 4), the first one the identity.
+    """
+    _checks.check_tensor("chain_poses", "relative", relative, (4, 4), min_batch_dims=1)
+    if relative.dim() != 3:
+        raise ValueError(
+            f"chain_poses: 'relative' must have shape (M-1, 4, 4), got {relative.shape}"
+        )
+    poses = [se3.identity(dtype=relative.dtype, device=relative.device)]
+    for step in relative:
+        poses.append(se3.compose(poses[-1], step))
+    return torch.stack(poses)

@@ -1,0 +1,163 @@
+"""Stanford 3D Scanning Repository ``.conf`` alignments (e.g. the bunny's ``bun.conf``).
+
+A ``.conf`` file has one ``bmesh <file> tx ty tz qx qy qz qw`` line per scan (and a ``camera``
+line for the viewer, which is ignored). The quaternion is written scalar-last. The rigid map
+from scan coordinates into the common frame is (shared/data/README.md, checked numerically)::
+
+    p_common = R(q)ᵀ p_scan + t
+
+with R(q) the Hamilton rotation matrix of q: the *conjugate* rotation, then the translation.
+In torchslam's convention this is the pose T = [[R(q)ᵀ, t], [0, 1]] with p' = R p + t; in the
+seed's notation it is T_0i, the map from frame i into the common frame 0 (the inverse of the
+seed's T_i0). Quaternions are converted explicitly from the file order (x, y, z, w) to
+torchslam's (w, x, y, z) and normalized.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from torchslam import _checks
+from torchslam.lie import convert, se3, so3
+
+__all__ = [
+    "pose_errors",
+    "read_conf",
+    "relative_to_first",
+    "scan_name",
+    "stack",
+]
+
+
+def scan_name(path: str | os.PathLike) -> str:
+    """Scan name of a file: its base name without the extension, e.g. ``"bun045"``."""
+    return os.path.splitext(os.path.basename(os.fspath(path)))[0]
+
+
+def read_conf(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) -> dict[str, Tensor]:
+    """Read a Stanford ``.conf`` file into ``{scan name: T}`` in file order.
+
+    Args:
+        path: the ``.conf`` file.
+        dtype: dtype of the poses, float64 by default.
+
+    Returns:
+        Ordered mapping from scan name (``bmesh`` file name without extension, e.g.
+        ``"bun045"``) to T of shape (4, 4), the map from that scan's coordinates into the
+        common frame: p_common = T[:3, :3] p_scan + T[:3, 3] with T[:3, :3] = R(q)ᵀ.
+
+    Raises:
+        ValueError: a malformed line (the message names the file and line).
+    """
+    poses: dict[str, Tensor] = {}
+    with open(path, encoding="ascii", errors="replace") as f:
+        for number, raw in enumerate(f, start=1):
+            words = raw.split()
+            if not words or words[0] in ("camera", "#"):
+                continue
+            if words[0] != "bmesh":
+                raise ValueError(
+                    f"read_conf: {os.fspath(path)}: line {number}: expected 'camera' or "
+                    f"'bmesh', got {words[0]!r}"
+                )
+            if len(words) != 9:
+                raise ValueError(
+                    f"read_conf: {os.fspath(path)}: line {number}: expected 'bmesh <file> "
+                    f"tx ty tz qx qy qz qw', got {len(words)} fields"
+                )
+            try:
+                values = [float(v) for v in words[2:]]
+            except ValueError:
+                raise ValueError(
+                    f"read_conf: {os.fspath(path)}: line {number}: not a number in {raw.strip()!r}"
+                ) from None
+            t = torch.tensor(values[:3], dtype=dtype)
+            qx, qy, qz, qw = values[3:]
+            q_wxyz = torch.tensor([qw, qx, qy, qz], dtype=dtype)  # file order is scalar-last
+            norm = torch.linalg.vector_norm(q_wxyz)
+            if not norm > 0:
+                raise ValueError(f"read_conf: {os.fspath(path)}: line {number}: zero quaternion")
+            # The file's 6 significant digits leave |q| − 1 ~ 1e-6: normalize first.
+            R = convert.quaternion_to_matrix(q_wxyz / norm).transpose(-1, -2)  # R(q)ᵀ
+            name = scan_name(words[1])
+            if name in poses:
+                raise ValueError(
+                    f"read_conf: {os.fspath(path)}: line {number}: scan {name!r} listed twice"
+                )
+            poses[name] = se3.from_rotation_translation(R, t)
+    return poses
+
+
+def relative_to_first(
+    poses: Tensor | Mapping[str, Tensor], first: str | int = 0
+) -> Tensor | dict[str, Tensor]:
+    """Express poses in the frame of one scan: T_i ↦ T_first⁻¹ T_i.
+
+    If T_i maps scan i into some common frame, the result maps scan i into the frame of scan
+    ``first``, whose own pose becomes the identity.
+
+    Args:
+        poses: stacked poses of shape (M, 4, 4), or a mapping ``{name: T (4, 4)}``.
+        first: index (stacked) or name or index (mapping) of the reference scan.
+
+    Returns:
+        The same container type: (M, 4, 4) or ``{name: (4, 4)}`` in the same order.
+    """
+    if isinstance(poses, Mapping):
+        names = list(poses)
+        key = names[first] if isinstance(first, int) else first
+        if key not in poses:
+            raise ValueError(f"relative_to_first: scan {key!r} not among {names}")
+        reference = se3.inverse(poses[key])
+        return {n: se3.compose(reference, T) for n, T in poses.items()}
+    _checks.check_tensor("relative_to_first", "poses", poses, (4, 4), min_batch_dims=1)
+    if not isinstance(first, int):
+        raise TypeError("relative_to_first: 'first' must be an index for stacked poses")
+    return se3.compose(se3.inverse(poses[first])[None], poses)
+
+
+def pose_errors(
+    estimated: Tensor, reference: Tensor, first: int | None = 0
+) -> tuple[Tensor, Tensor]:
+    """Rotation and translation errors of estimated poses against reference poses.
+
+    Both sets are first expressed in the frame of scan ``first`` (:func:`relative_to_first`,
+    skipped when ``first`` is None), then the error of scan i is E_i = T_ref,i⁻¹ T_est,i:
+    its rotation angle (degrees, from so3.log) and the distance ‖t_est,i − t_ref,i‖.
+
+    Args:
+        estimated: poses mapping each scan into a common frame, shape (M, 4, 4).
+        reference: the same for the reference (e.g. :func:`read_conf`), shape (M, 4, 4).
+        first: index of the scan whose frame both are expressed in, or None.
+
+    Returns:
+        ``(rotation_deg, translation)``, each of shape (M,); translation in the poses' units.
+    """
+    fn = "pose_errors"
+    _checks.check_tensor(fn, "estimated", estimated, (4, 4), min_batch_dims=1)
+    _checks.check_tensor(fn, "reference", reference, (4, 4), min_batch_dims=1)
+    _checks.check_same_kind(fn, estimated=estimated, reference=reference)
+    if estimated.shape != reference.shape:
+        raise ValueError(
+            f"{fn}: 'estimated' {tuple(estimated.shape)} and 'reference' "
+            f"{tuple(reference.shape)} must have the same shape"
+        )
+    if first is not None:
+        estimated = relative_to_first(estimated, first)
+        reference = relative_to_first(reference, first)
+    R_error = reference[..., :3, :3].transpose(-1, -2) @ estimated[..., :3, :3]
+    rotation_deg = torch.rad2deg(torch.linalg.vector_norm(so3.log(so3.project(R_error)), dim=-1))
+    translation = torch.linalg.vector_norm(estimated[..., :3, 3] - reference[..., :3, 3], dim=-1)
+    return rotation_deg, translation
+
+
+def stack(poses: Mapping[str, Tensor], names: Sequence[str]) -> Tensor:
+    """Stack ``poses[name]`` for ``names`` into shape (len(names), 4, 4)."""
+    missing = [n for n in names if n not in poses]
+    if missing:
+        raise ValueError(f"stack: no pose for scan(s) {missing}; known: {list(poses)}")
+    return torch.stack([poses[n] for n in names])

@@ -1,0 +1,234 @@
+"""Rotation and pose conversions, and interop with ``pytorch_kinematics.transforms.Transform3d``.
+
+Conventions (kept across torchslam):
+- Quaternions are Hamilton, stored (w, x, y, z), real part first, unit norm. q and −q are the
+  same rotation; every function here that returns a quaternion returns the one with w ≥ 0.
+- Axis-angle is the rotation vector ω = θ·axis (radians), the same ω as ``so3.exp``/``so3.log``.
+- Poses are T = [[R, t], [0, 1]] with p' = R p + t, shape (..., 4, 4).
+
+What comes from pytorch-kinematics and what does not (checked by ``tests/lie/test_convert.py``):
+- ``quaternion_to_matrix`` is pytorch-kinematics' (a polynomial in q, exact, w-first order).
+- pytorch-kinematics' ``matrix_to_quaternion``, ``axis_angle_to_quaternion`` and
+  ``quaternion_to_axis_angle`` give correct values but NaN gradients at the identity rotation
+  (sqrt of 0 and sin θ / θ evaluated at θ = 0), so torchslam's own gradient-safe versions are
+  used instead: Shepperd's method from ``so3``, and the series-backed coefficients of
+  ``torchslam.lie._series``.
+- ``Transform3d`` (pytorch-kinematics ≥ 0.7) stores the ordinary column-vector matrix: its
+  ``get_matrix()`` is exactly T = [[R, t], [0, 1]] and ``transform_points(p)`` = R p + t (its
+  class docstring draws the rotation block transposed; the code does not transpose). A
+  ``Transform3d`` holds a flat batch (N, 4, 4), so leading batch dims are flattened on the way in.
+"""
+
+from __future__ import annotations
+
+import torch
+from pytorch_kinematics.transforms import Transform3d
+from pytorch_kinematics.transforms import rotation_conversions as _pk_rotation
+from torch import Tensor
+
+from torchslam import _checks
+from torchslam.lie import _series, se3, so3
+
+__all__ = [
+    "axis_angle_to_matrix",
+    "axis_angle_to_quaternion",
+    "from_transform3d",
+    "matrix_to_axis_angle",
+    "matrix_to_quaternion",
+    "pose_from_translation_quaternion",
+    "pose_to_translation_quaternion",
+    "quaternion_to_axis_angle",
+    "quaternion_to_matrix",
+    "to_transform3d",
+]
+
+
+def _canonical(q: Tensor) -> Tensor:
+    """The representative of ±q with w ≥ 0."""
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quaternion_to_matrix(q: Tensor) -> Tensor:
+    """Rotation matrix of a unit quaternion (Hamilton, stored (w, x, y, z)).
+
+    Uses ``pytorch_kinematics.transforms.quaternion_to_matrix``. q and −q give the same R.
+
+    Args:
+        q: unit quaternions (w, x, y, z), shape (..., 4). Checked (|q| = 1) when validation is
+            on; with validation off the formula divides by |q|², i.e. it uses q / |q|.
+
+    Returns:
+        Rotation matrices, shape (..., 3, 3), same dtype and device as ``q``.
+    """
+    _checks.check_tensor("convert.quaternion_to_matrix", "q", q, (4,))
+    _checks.check_unit_quaternion("convert.quaternion_to_matrix", "q", q)
+    return _pk_rotation.quaternion_to_matrix(q)
+
+
+def matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Unit quaternion (Hamilton, stored (w, x, y, z), w ≥ 0) of a rotation matrix.
+
+    Shepperd's method (the best-conditioned of four candidates), gradient-safe at R = I.
+
+    Args:
+        R: rotation matrices, shape (..., 3, 3). Checked (orthonormal, det +1) when validation
+            is on; use ``so3.project`` first for approximately orthonormal input.
+
+    Returns:
+        Quaternions (w, x, y, z) with w ≥ 0, shape (..., 4).
+    """
+    _checks.check_tensor("convert.matrix_to_quaternion", "R", R, (3, 3))
+    _checks.check_rotation("convert.matrix_to_quaternion", "R", R)
+    return so3._matrix_to_quaternion(R)
+
+
+def axis_angle_to_quaternion(omega: Tensor) -> Tensor:
+    """Unit quaternion (w, x, y, z) of a rotation vector: (cos(θ/2), sin(θ/2) ω/θ).
+
+    Exact and differentiable at θ = 0 (series coefficients). w ≥ 0 for θ ≤ π; for θ > π the
+    quaternion is returned as computed (w < 0), which is the same rotation as −q.
+
+    Args:
+        omega: rotation vectors ω = θ·axis (radians), shape (..., 3).
+
+    Returns:
+        Quaternions (w, x, y, z), shape (..., 4).
+    """
+    _checks.check_tensor("convert.axis_angle_to_quaternion", "omega", omega, (3,))
+    _checks.check_finite("convert.axis_angle_to_quaternion", "omega", omega)
+    # With x = θ/2: sin(x)/x and (1 − cos x)/x² are the Rodrigues coefficients at x².
+    half2 = 0.25 * (omega * omega).sum(-1)
+    a, b = _series.sinc_coefficients(half2)
+    w = 1.0 - half2 * b
+    return torch.cat((w[..., None], (0.5 * a)[..., None] * omega), dim=-1)
+
+
+def quaternion_to_axis_angle(q: Tensor) -> Tensor:
+    """Rotation vector of a unit quaternion (w, x, y, z), angle θ ∈ [0, π].
+
+    θ = 2·atan2(|v|, |w|) for q = (w, v), q replaced by −q when w < 0; exact and differentiable
+    at θ = 0 and near π. At exactly θ = π (w = 0) either ±ω may be returned.
+
+    Args:
+        q: unit quaternions (w, x, y, z), shape (..., 4); checked when validation is on.
+
+    Returns:
+        Rotation vectors, shape (..., 3).
+    """
+    _checks.check_tensor("convert.quaternion_to_axis_angle", "q", q, (4,))
+    _checks.check_unit_quaternion("convert.quaternion_to_axis_angle", "q", q)
+    q = _canonical(q)
+    w, v = q[..., 0], q[..., 1:]
+    n = torch.linalg.vector_norm(v, dim=-1)
+    return (2.0 * _series.atan_ratio(n, w))[..., None] * v
+
+
+def axis_angle_to_matrix(omega: Tensor) -> Tensor:
+    """Rotation matrix of a rotation vector; the same as ``so3.exp`` (Rodrigues, seed eq. L4.1).
+
+    Args:
+        omega: rotation vectors ω = θ·axis (radians), shape (..., 3).
+
+    Returns:
+        Rotation matrices, shape (..., 3, 3).
+    """
+    _checks.check_tensor("convert.axis_angle_to_matrix", "omega", omega, (3,))
+    _checks.check_finite("convert.axis_angle_to_matrix", "omega", omega)
+    return so3._exp(omega)
+
+
+def matrix_to_axis_angle(R: Tensor) -> Tensor:
+    """Rotation vector of a rotation matrix; the same as ``so3.log`` (angle θ ∈ [0, π]).
+
+    Args:
+        R: rotation matrices, shape (..., 3, 3); checked when validation is on.
+
+    Returns:
+        Rotation vectors, shape (..., 3).
+    """
+    _checks.check_tensor("convert.matrix_to_axis_angle", "R", R, (3, 3))
+    _checks.check_rotation("convert.matrix_to_axis_angle", "R", R)
+    return so3._log(R)
+
+
+def pose_from_translation_quaternion(t: Tensor, q: Tensor) -> Tensor:
+    """Pose T = [[R(q), t], [0, 1]] from a translation and a unit quaternion.
+
+    Takes translation first, then the quaternion in (w, x, y, z) order (TUM files store
+    (x, y, z, w): reorder with ``q[..., [3, 0, 1, 2]]``). Leading dims broadcast.
+
+    Args:
+        t: translations, shape (..., 3).
+        q: unit quaternions (w, x, y, z), shape (..., 4); checked when validation is on.
+
+    Returns:
+        Poses, shape broadcast(t.shape[:-1], q.shape[:-1]) + (4, 4).
+    """
+    fn = "convert.pose_from_translation_quaternion"
+    _checks.check_tensor(fn, "t", t, (3,))
+    _checks.check_tensor(fn, "q", q, (4,))
+    _checks.check_same_kind(fn, t=t, q=q)
+    _checks.check_finite(fn, "t", t)
+    _checks.check_unit_quaternion(fn, "q", q)
+    R = _pk_rotation.quaternion_to_matrix(q)
+    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    return se3._assemble(R.expand(*batch, 3, 3), t.expand(*batch, 3))
+
+
+def pose_to_translation_quaternion(T: Tensor) -> tuple[Tensor, Tensor]:
+    """Translation and unit quaternion (w, x, y, z), w ≥ 0, of a pose T = [[R, t], [0, 1]].
+
+    Returns translation first, then the quaternion; inverse of
+    :func:`pose_from_translation_quaternion` (up to q ≡ −q).
+
+    Args:
+        T: poses, shape (..., 4, 4); checked (rigid, bottom row [0, 0, 0, 1]) when validation
+            is on.
+
+    Returns:
+        ``(t, q)`` with t of shape (..., 3) and q of shape (..., 4).
+    """
+    fn = "convert.pose_to_translation_quaternion"
+    _checks.check_tensor(fn, "T", T, (4, 4))
+    _checks.check_pose_matrix(fn, "T", T)
+    return T[..., :3, 3], so3._matrix_to_quaternion(T[..., :3, :3])
+
+
+def to_transform3d(T: Tensor) -> Transform3d:
+    """Wrap poses T = [[R, t], [0, 1]] in a ``pytorch_kinematics.transforms.Transform3d``.
+
+    The matrix is passed as is (``Transform3d`` uses the same column-vector convention:
+    ``transform_points(p)`` = R p + t). ``Transform3d`` holds a flat batch, so T of shape
+    (..., 4, 4) becomes a batch of N = prod(...) transforms (N = 1 for a single pose); keep
+    ``T.shape[:-2]`` to reshape the result of :func:`from_transform3d`.
+
+    Args:
+        T: poses, shape (..., 4, 4); checked (rigid) when validation is on.
+
+    Returns:
+        A ``Transform3d`` of length N with T's dtype and device.
+    """
+    _checks.check_tensor("convert.to_transform3d", "T", T, (4, 4))
+    _checks.check_pose_matrix("convert.to_transform3d", "T", T)
+    return Transform3d(matrix=T.reshape(-1, 4, 4), dtype=T.dtype, device=T.device)
+
+
+def from_transform3d(transform: Transform3d) -> Tensor:
+    """Poses T = [[R, t], [0, 1]] of a ``pytorch_kinematics.transforms.Transform3d``.
+
+    Args:
+        transform: a ``Transform3d`` of length N; it must be rigid (no scale or shear),
+            checked when validation is on.
+
+    Returns:
+        Poses, shape (N, 4, 4), with the transform's dtype and device.
+    """
+    if not isinstance(transform, Transform3d):
+        raise TypeError(
+            "convert.from_transform3d: argument 'transform' must be a "
+            f"pytorch_kinematics.transforms.Transform3d, got {type(transform).__name__}"
+        )
+    T = transform.get_matrix()
+    _checks.check_tensor("convert.from_transform3d", "transform.get_matrix()", T, (4, 4))
+    _checks.check_pose_matrix("convert.from_transform3d", "transform", T)
+    return T

@@ -1,0 +1,275 @@
+"""Robust kernels in Ceres' convention, and Ceres' corrector (the Triggs correction).
+
+A loss acts on the squared norm s = rᵀΩr ≥ 0 of one observation's whitened residual and
+returns (ρ(s), ρ'(s), ρ''(s)); a robustified problem minimizes ½ Σ ρ(s) (Ceres' convention, so
+ρ(s) = s for :class:`TrivialLoss` gives plain least squares). Every loss with a scale a has
+ρ(s) = s + O(s²) near 0 (ρ'(0) = 1) and bends away from the quadratic around s = a².
+
+The scale may be a Python number or a tensor; a tensor scale may require grad (gradients flow
+to it through ρ, ρ' and ρ'') and may be batched per problem: its dims align with the *leading*
+dims of s, so a scale of shape (B,) applies to s of shape (B, E) row by row (a scale of shape
+(B, E) or a 0-d tensor works too). Every value and gradient is finite at s = 0 and on both
+sides of each knee (the double-``where`` idiom: the unused branch of a ``where`` is evaluated
+at a safe value).
+
+:func:`triggs_correction` turns (s, ρ', ρ'') into the scalings that let a plain Gauss-Newton /
+Levenberg-Marquardt solver minimize ½ Σ ρ(s) (Triggs et al., "Bundle adjustment — a modern
+synthesis", §4.3, as in Ceres' ``Corrector``).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+
+import torch
+from torch import Tensor
+
+from torchslam import _checks
+
+__all__ = [
+    "CauchyLoss",
+    "HuberLoss",
+    "RobustLoss",
+    "TrivialLoss",
+    "TukeyLoss",
+    "triggs_correction",
+]
+
+
+def _check_s(fn: str, s: object) -> Tensor:
+    """Metadata checks of a squared norm s (any shape); non-negative and finite when active."""
+    s = _checks.check_tensor(fn, "s", s)
+    _checks.check_finite(fn, "s", s)
+    if _checks.value_checks_active() and s.numel() > 0:
+        negative = s.detach() < 0
+        if bool(negative.any()):
+            idx = tuple(int(i) for i in negative.nonzero()[0].tolist())
+            raise ValueError(
+                f"{fn}: argument 's' must be a squared norm (s ≥ 0); at index {idx} "
+                f"s = {float(s.detach()[idx]):.6g}"
+            )
+    return s
+
+
+class RobustLoss(abc.ABC):
+    """A robust kernel ρ applied to squared norms s ≥ 0 (Ceres' ``LossFunction``).
+
+    Calling it returns (ρ(s), ρ'(s), ρ''(s)), each of shape broadcast(s, scale) (with the
+    scale's dims aligned to the leading dims of s), same dtype and device as s.
+    """
+
+    def __call__(self, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Evaluate (ρ(s), ρ'(s), ρ''(s)).
+
+        Args:
+            s: squared norms rᵀΩr of whitened residuals, any shape (...), s ≥ 0.
+
+        Returns:
+            (ρ, ρ', ρ''), each of shape (...) (broadcast against a batched scale).
+        """
+        fn = f"{type(self).__name__}.__call__"
+        s = _check_s(fn, s)
+        return self._evaluate(fn, s)
+
+    @abc.abstractmethod
+    def _evaluate(self, fn: str, s: Tensor) -> tuple[Tensor, Tensor, Tensor]: ...
+
+
+class TrivialLoss(RobustLoss):
+    """ρ(s) = s, ρ' = 1, ρ'' = 0: plain least squares (Ceres' ``TrivialLoss``)."""
+
+    def _evaluate(self, fn: str, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return s, torch.ones_like(s), torch.zeros_like(s)
+
+    def __repr__(self) -> str:
+        return "TrivialLoss()"
+
+
+class _ScaledKernel(RobustLoss):
+    """A kernel with one positive scale a (the residual norm where it departs from s)."""
+
+    def __init__(self, scale: float | Tensor) -> None:
+        owner = type(self).__name__
+        if isinstance(scale, bool) or not isinstance(scale, (int, float, Tensor)):
+            raise TypeError(
+                f"{owner}: argument 'scale' must be a positive float or a float tensor, "
+                f"got {type(scale).__name__}"
+            )
+        if isinstance(scale, Tensor):
+            _checks.check_tensor(owner, "scale", scale)
+            bad = ~(torch.isfinite(scale.detach()) & (scale.detach() > 0))
+            if scale.numel() > 0 and _checks.value_checks_active() and bool(bad.any()):
+                idx = tuple(int(i) for i in bad.nonzero()[0].tolist())
+                raise ValueError(
+                    f"{owner}: argument 'scale' must be positive and finite; at index {idx} "
+                    f"it is {float(scale.detach()[idx])!r}"
+                )
+        elif not (math.isfinite(scale) and scale > 0):
+            raise ValueError(
+                f"{owner}: argument 'scale' must be positive and finite, got {scale!r}"
+            )
+        else:
+            scale = float(scale)
+        self._scale = scale
+
+    @property
+    def scale(self) -> float | Tensor:
+        """The scale a as given (a float, or the tensor itself so gradients reach it)."""
+        return self._scale
+
+    def __repr__(self) -> str:
+        scale = self._scale
+        shown = repr(scale) if isinstance(scale, float) else f"tensor{tuple(scale.shape)}"
+        return f"{type(self).__name__}(scale={shown})"
+
+    def _evaluate(self, fn: str, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return self._evaluate_scaled(s, self._aligned_scale(fn, s))
+
+    def _aligned_scale(self, fn: str, s: Tensor) -> float | Tensor:
+        """The scale with trailing singleton dims so that its dims align with s's leading dims."""
+        scale = self._scale
+        if not isinstance(scale, Tensor):
+            return scale
+        _checks.check_same_kind(fn, s=s, scale=scale)
+        if scale.dim() > s.dim() or any(
+            a != b and a != 1 and b != 1 for a, b in zip(scale.shape, s.shape, strict=False)
+        ):
+            raise ValueError(
+                f"{fn}: the scale of shape {tuple(scale.shape)} must match the leading dims of "
+                f"'s' (shape {tuple(s.shape)}), e.g. scale (B,) for s (B, E)"
+            )
+        return scale.reshape(*scale.shape, *([1] * (s.dim() - scale.dim())))
+
+    @abc.abstractmethod
+    def _evaluate_scaled(
+        self, s: Tensor, scale: float | Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]: ...
+
+
+class HuberLoss(_ScaledKernel):
+    """Huber's kernel (Ceres' ``HuberLoss(a)``), quadratic inside |r| ≤ a, linear outside.
+
+    ρ(s) = s for s ≤ a², 2a√s − a² otherwise; ρ' = 1 resp. a/√s; ρ'' = 0 resp. −ρ'/(2s).
+    ρ and ρ' are continuous at the knee s = a²; ρ'' jumps there (from 0 to −1/(2a²)).
+
+    Args:
+        scale: a > 0, a float or a float tensor (may require grad; dims align with the
+            leading dims of s, e.g. (B,) for s of shape (B, E)).
+    """
+
+    def _evaluate_scaled(self, s: Tensor, scale: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        b = scale * scale
+        outlier = s > b
+        # Double where: the outlier branch sees s ≥ a² > 0 everywhere, so √s and 1/s are safe.
+        s_safe = torch.where(outlier, s, b)
+        root = torch.sqrt(s_safe)
+        rho1_out = scale / root
+        rho = torch.where(outlier, 2.0 * scale * root - b, s)
+        rho1 = torch.where(outlier, rho1_out, torch.ones_like(rho1_out))
+        rho2 = torch.where(outlier, -rho1_out / (2.0 * s_safe), torch.zeros_like(rho1_out))
+        return rho, rho1, rho2
+
+
+class CauchyLoss(_ScaledKernel):
+    """Cauchy (Lorentzian) kernel (Ceres' ``CauchyLoss(a)``): ρ(s) = a² log(1 + s/a²).
+
+    ρ' = 1/(1 + s/a²), ρ'' = −(1/a²)·ρ'², smooth everywhere.
+
+    Args:
+        scale: a > 0, a float or a float tensor (may require grad; dims align with the
+            leading dims of s, e.g. (B,) for s of shape (B, E)).
+    """
+
+    def _evaluate_scaled(self, s: Tensor, scale: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        b = scale * scale
+        ratio = s / b
+        rho = b * torch.log1p(ratio)
+        rho1 = 1.0 / (1.0 + ratio)
+        rho2 = -(rho1 * rho1) / b
+        return rho, rho1, rho2
+
+
+class TukeyLoss(_ScaledKernel):
+    """Tukey's biweight (Ceres' ``TukeyLoss(a)``), constant for |r| > a.
+
+    ρ(s) = a²/3 · (1 − (1 − s/a²)³) for s ≤ a², a²/3 otherwise; ρ' = (1 − s/a²)² resp. 0;
+    ρ'' = −(2/a²)(1 − s/a²) resp. 0. ρ, ρ' and ρ'' are continuous at the knee s = a².
+    This is the form of current Ceres (ρ'(0) = 1 like every other kernel, so ½ρ is the
+    textbook biweight a²/6 (1 − (1 − (r/a)²)³)); older Ceres releases returned half of it
+    (a²/6 (1 − (1 − s/a²)³), ρ' = ½(1 − s/a²)²).
+
+    Args:
+        scale: a > 0, a float or a float tensor (may require grad; dims align with the
+            leading dims of s, e.g. (B,) for s of shape (B, E)).
+    """
+
+    def _evaluate_scaled(self, s: Tensor, scale: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        b = scale * scale
+        inlier = s <= b
+        # v = 1 − s/a² inside, 0 outside: the outlier values (a²/3, 0, 0) follow from it.
+        v = 1.0 - s / b
+        v = torch.where(inlier, v, torch.zeros_like(v))
+        rho = (b / 3.0) * (1.0 - v * v * v)
+        rho1 = v * v
+        rho2 = (-2.0 / b) * v
+        return rho, rho1, rho2
+
+
+def triggs_correction(s: Tensor, rho1: Tensor, rho2: Tensor) -> tuple[Tensor, Tensor]:
+    """Ceres' ``Corrector``: scalings that make Gauss-Newton minimize ½ρ(‖r‖²) (Triggs).
+
+    With α = 1 − √(1 + 2 s ρ''/ρ'), the corrected residual and Jacobian of one observation
+    (r whitened, s = ‖r‖²) are
+
+        r̃ = residual_scale · r,            residual_scale = √ρ' / (1 − α),
+        J̃ = √ρ' · (J − alpha_over_s · r (rᵀ J)),   alpha_over_s = α / s,
+
+    so that J̃ᵀ r̃ = ρ' Jᵀ r is exactly the gradient of ½ρ(‖r‖²) and J̃ᵀ J̃ = ρ' JᵀJ + 2ρ'' Jᵀr rᵀJ
+    is its Gauss-Newton Hessian (second order in the residual model). Ceres' clamp is kept:
+    when s = 0 or ρ'' ≤ 0 (every robust kernel outside its quadratic part) α = 0, i.e. plain
+    √ρ' scaling of both r and J (IRLS): the gradient stays exact, the Hessian model becomes
+    ρ' JᵀJ, which keeps the normal equations positive semi-definite. The correction also needs
+    ρ' > 0; where ρ' = 0 (Tukey outliers) both scalings are 0.
+
+    The J̃ formula applies column by column, so it may be applied to each parameter block of an
+    observation separately (always with the uncorrected r). Gradients are finite everywhere,
+    including ρ' = 0 and s = 0.
+
+    Args:
+        s: squared norms ‖r‖² of the whitened residuals, shape (...), s ≥ 0.
+        rho1: ρ'(s) ≥ 0, shape broadcastable with s.
+        rho2: ρ''(s), shape broadcastable with s.
+
+    Returns:
+        (residual_scale, alpha_over_s), each of shape broadcast(s, rho1, rho2); √ρ', the
+        Jacobian's scale, is ``residual_scale * (1 − alpha_over_s * s)``.
+    """
+    fn = "triggs_correction"
+    s = _check_s(fn, s)
+    _checks.check_tensor(fn, "rho1", rho1)
+    _checks.check_tensor(fn, "rho2", rho2)
+    _checks.check_same_kind(fn, s=s, rho1=rho1, rho2=rho2)
+    try:
+        torch.broadcast_shapes(s.shape, rho1.shape, rho2.shape)
+    except RuntimeError:
+        raise ValueError(
+            f"{fn}: shapes of 's' {tuple(s.shape)}, 'rho1' {tuple(rho1.shape)} and 'rho2' "
+            f"{tuple(rho2.shape)} do not broadcast"
+        ) from None
+    _checks.check_finite(fn, "rho1", rho1)
+    _checks.check_finite(fn, "rho2", rho2)
+    if _checks.value_checks_active() and rho1.numel() > 0 and bool((rho1.detach() < 0).any()):
+        raise ValueError(f"{fn}: argument 'rho1' must be non-negative (ρ' ≥ 0)")
+
+    positive = rho1 > 0
+    # √ρ' with a finite gradient at ρ' = 0 (Tukey outliers): double where.
+    sqrt_rho1 = torch.where(positive, torch.sqrt(torch.where(positive, rho1, 1.0)), 0.0)
+    full = (s > 0) & (rho2 > 0) & positive
+    s_safe = torch.where(full, s, 1.0)
+    ratio = torch.where(full, rho2, 0.0) / torch.where(full, rho1, 1.0)
+    # α is the smaller root of ½α² − α − (ρ''/ρ') s = 0; D > 1 on the full branch.
+    alpha = 1.0 - torch.sqrt(1.0 + 2.0 * s_safe * ratio)
+    residual_scale = torch.where(full, sqrt_rho1 / (1.0 - alpha), sqrt_rho1)
+    alpha_over_s = torch.where(full, alpha / s_safe, 0.0)
+    return residual_scale, alpha_over_s

@@ -1,0 +1,152 @@
+"""Initial poses for a pose graph: the odometry chain and the chordal relaxation.
+
+Conventions as in :mod:`torchslam.posegraph.graph`: T_i maps body-i points into the world,
+Z_ij ≈ T_i⁻¹ T_j = [[R̃_ij, t̃_ij], [0, 1]], information in ξ = (ω, v) order. Both initializers
+keep vertex 0 (the smallest id) at its pose in the graph (the gauge), return (N, 4, 4) poses in
+the graph's dtype and device, and are not differentiable (they run in NumPy/SciPy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
+import scipy.sparse.linalg
+import torch
+from torch import Tensor
+
+from torchslam.posegraph.graph import PoseGraph
+
+__all__ = ["chordal_initialization", "odometry_initialization"]
+
+
+def odometry_initialization(graph: PoseGraph) -> Tensor:
+    """Poses from composing the odometry chain from vertex 0: T_(k+1) = T_k · Z_(k,k+1).
+
+    The odometry edge of step k joins vertex indices k and k + 1 (id_j = id_i + 1 for
+    contiguous ids); an edge stored as (k + 1, k) is used inverted. When several edges join the
+    same pair, the first in file order is used. T_0 is ``graph.poses[0]``.
+
+    Args:
+        graph: the pose graph.
+
+    Returns:
+        Poses, shape (N, 4, 4).
+
+    Raises:
+        ValueError: when some consecutive pair of vertices has no edge (the chain is broken).
+    """
+    n = graph.num_vertices
+    edges = graph.edges.cpu().numpy()
+    Z = graph.measurements.detach().cpu().to(torch.float64).numpy()
+    step = np.full((max(n - 1, 0), 4, 4), np.nan)
+    found = np.zeros(max(n - 1, 0), dtype=bool)
+    # Reverse so that the first edge in file order is written last and wins.
+    for e in range(len(edges) - 1, -1, -1):
+        a, b = edges[e]
+        if b == a + 1:
+            step[a], found[a] = Z[e], True
+        elif a == b + 1:
+            step[b], found[b] = np.linalg.inv(Z[e]), True
+    if not found.all():
+        k = int(np.flatnonzero(~found)[0])
+        ids = graph.ids.tolist()
+        raise ValueError(
+            f"odometry_initialization: no edge joins vertex ids {ids[k]} and {ids[k + 1]}; "
+            "the odometry chain is broken (use chordal_initialization)"
+        )
+    poses = np.empty((n, 4, 4))
+    poses[0] = graph.poses[0].detach().cpu().to(torch.float64).numpy()
+    for k in range(n - 1):
+        poses[k + 1] = poses[k] @ step[k]
+    return torch.from_numpy(poses).to(dtype=graph.poses.dtype, device=graph.poses.device)
+
+
+def _solve_anchored(A: scipy.sparse.csr_matrix, b: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """Least squares min |A x − b|² with x[0:3] fixed to ``anchor`` (rows 0..2), any RHS count.
+
+    Solves the normal equations of the free unknowns with a sparse LU (SuperLU, COLAMD order).
+    """
+    A = A.tocsc()
+    free = A[:, 3:]
+    rhs = b - A[:, :3] @ anchor
+    H = (free.T @ free).tocsc()
+    x_free = scipy.sparse.linalg.splu(H).solve(np.asarray(free.T @ rhs))
+    return np.concatenate((anchor, x_free.reshape(-1, *anchor.shape[1:])), axis=0)
+
+
+def chordal_initialization(graph: PoseGraph) -> Tensor:
+    """Poses from the chordal relaxation: linear rotations, projection, linear translations.
+
+    1. Rotations (Carlone, Tron, Daniilidis, Dellaert, ICRA 2015; Martinec and Pajdla 2007):
+       minimize Σ κ_ij ‖R_j − R_i R̃_ij‖_F² over unconstrained 3 × 3 matrices with R_0 fixed, a
+       sparse linear least-squares problem (its three rows decouple and share one matrix),
+       then project every R_i onto SO(3) (SVD, nearest in Frobenius norm). κ_ij is SE-Sync's
+       isotropic rotation weight 3 / (2 tr(Ω_RR⁻¹)).
+    2. Translations, with those rotations fixed: minimize
+       Σ ‖U_ij (R_iᵀ (t_j − t_i) − t̃_ij)‖² with t_0 fixed, where U_ijᵀ U_ij = Ω_tt (the
+       translation block of the information, expressed in frame i as in the residual).
+
+    Both are solved through their normal equations with a sparse LU factorization.
+
+    Args:
+        graph: the pose graph; it must be connected.
+
+    Returns:
+        Poses, shape (N, 4, 4).
+
+    Raises:
+        ValueError: when the graph is not connected.
+    """
+    n, num_edges = graph.num_vertices, graph.num_edges
+    if n == 1:
+        return graph.poses.detach().clone()
+    edges = graph.edges.cpu().numpy()
+    i, j = edges[:, 0], edges[:, 1]
+    adjacency = scipy.sparse.coo_matrix((np.ones(num_edges), (i, j)), shape=(n, n))
+    count, labels = scipy.sparse.csgraph.connected_components(adjacency, directed=False)
+    if count > 1:
+        other = int(np.flatnonzero(labels != labels[0])[0])
+        raise ValueError(
+            f"chordal_initialization: the graph has {count} connected components; vertex id "
+            f"{int(graph.ids[other])} is not connected to vertex id {int(graph.ids[0])}"
+        )
+    Z = graph.measurements.detach().cpu().to(torch.float64).numpy()
+    information = graph.information.detach().cpu().to(torch.float64).numpy()
+    T0 = graph.poses[0].detach().cpu().to(torch.float64).numpy()
+    rows3 = 3 * np.arange(num_edges)[:, None, None] + np.arange(3)[None, :, None]  # (E, 3, 1)
+
+    # Rotations: unknown X with block i = R_iᵀ; edge rows √κ (R̃ᵀ X_i − X_j) = 0, i.e. the
+    # transpose of √κ (R_i R̃ − R_j).
+    kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(information[:, :3, :3]), axis1=1, axis2=2))
+    w = np.sqrt(kappa)[:, None, None]
+    cols_i = 3 * i[:, None, None] + np.arange(3)[None, None, :]  # (E, 1, 3)
+    cols_j = 3 * j[:, None, None] + np.arange(3)[None, None, :]
+    row = np.broadcast_to(rows3, (num_edges, 3, 3)).ravel()
+    col_i = np.broadcast_to(cols_i, (num_edges, 3, 3)).ravel()
+    col_j = np.broadcast_to(cols_j, (num_edges, 3, 3)).ravel()
+    shape = (3 * num_edges, 3 * n)
+    eye = np.broadcast_to(np.eye(3), (num_edges, 3, 3))
+    data = np.concatenate(((w * Z[:, :3, :3].transpose(0, 2, 1)).ravel(), (-w * eye).ravel()))
+    A = scipy.sparse.csr_matrix((data, (np.tile(row, 2), np.concatenate((col_i, col_j)))), shape)
+    X = _solve_anchored(A, np.zeros((3 * num_edges, 3)), T0[:3, :3].T)
+    R = X.reshape(n, 3, 3).transpose(0, 2, 1)
+    U_svd, _, Vh = np.linalg.svd(R)
+    fix = np.ones((n, 3))
+    fix[:, 2] = np.sign(np.linalg.det(U_svd @ Vh))
+    R = (U_svd * fix[:, None, :]) @ Vh
+    R[0] = T0[:3, :3]
+
+    # Translations: edge rows M (t_j − t_i) = U t̃ with M = U R_iᵀ, Uᵀ U = Ω_tt.
+    U = np.linalg.cholesky(information[:, 3:, 3:]).transpose(0, 2, 1)
+    M = U @ R[i].transpose(0, 2, 1)
+    data = np.concatenate((M.ravel(), (-M).ravel()))
+    A = scipy.sparse.csr_matrix((data, (np.tile(row, 2), np.concatenate((col_j, col_i)))), shape)
+    b = (U @ Z[:, :3, 3:]).reshape(-1, 1)
+    t = _solve_anchored(A, b, T0[:3, 3:]).reshape(n, 3)
+
+    poses = np.zeros((n, 4, 4))
+    poses[:, :3, :3] = R
+    poses[:, :3, 3] = t
+    poses[:, 3, 3] = 1.0
+    return torch.from_numpy(poses).to(dtype=graph.poses.dtype, device=graph.poses.device)
