@@ -1,8 +1,49 @@
-"""torchslam: ICP-SLAM as batched, differentiable nonlinear least squares on SE(3)."""
+"""torchslam: ICP-SLAM as batched, differentiable nonlinear least squares on SE(3).
 
+Conventions (kept everywhere): tangent vectors ξ = (ω, v), rotation first; right perturbation
+T ← T·Exp(δ); T_i0 maps world (frame 0) points into frame i; Hamilton quaternions (w, x, y, z);
+float64 by default.
+"""
+
+from torchslam import (
+    alignment,
+    data,
+    initialization,
+    jacobians,
+    losses,
+    manifold,
+    metrics,
+)
 from torchslam._checks import validation
-from torchslam.lie import se3, so3
+from torchslam.lie import convert, se3, so3
+from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
+from torchslam.problem import PointMapData, PointMapProblem
+from torchslam.solver import SolveResult, SolverConfig, Status, solve, solve_tensors
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "se3", "so3", "validation"]
+__all__ = [
+    "CauchyLoss",
+    "HuberLoss",
+    "PointMapData",
+    "PointMapProblem",
+    "SolveResult",
+    "SolverConfig",
+    "Status",
+    "TrivialLoss",
+    "TukeyLoss",
+    "__version__",
+    "alignment",
+    "convert",
+    "data",
+    "initialization",
+    "jacobians",
+    "losses",
+    "manifold",
+    "metrics",
+    "se3",
+    "so3",
+    "solve",
+    "solve_tensors",
+    "validation",
+]
