@@ -2,28 +2,34 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from torchslam import icp
 from torchslam.icp import ICPConfig, ICPStatus
+from torchslam.io.stanford import pose_errors, read_conf, stack
 from torchslam.lie import se3, so3
 
 F64 = torch.float64
 
 
-def surface(count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def surface(
+    count: int, generator: torch.Generator, scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Points on a bumpy closed surface without symmetries (about 2 units across).
 
-    Returns the points (count, 3) and their unit directions from the centre (for cropping
-    "views").
+    ``scale`` stretches it along x, y, z. Returns the points (count, 3) and their unit
+    directions from the centre (for cropping "views").
     """
     u = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator, dtype=F64), dim=-1)
     x, y, z = u.unbind(-1)
     radius = 1 + 0.25 * torch.sin(3 * x + 1) * torch.cos(2 * y) + 0.15 * z**2 + 0.1 * x * y
-    return radius[:, None] * u, u
+    return radius[:, None] * u * torch.tensor(scale, dtype=F64), u
 
 
 def rotation_error_deg(T: torch.Tensor, T_true: torch.Tensor) -> float:
@@ -42,15 +48,15 @@ def true_transform() -> torch.Tensor:
 
 
 def views(generator, true_transform, noise=0.0, count=3000):
-    """Two partially overlapping views sampled independently from the surface.
+    """Two partially overlapping noisy views of one sampled surface.
 
-    source: the part with direction x > −0.4 in the source frame; target: the part with
-    x < 0.5, moved by ``true_transform`` (target ≈ T source). Overlap: −0.4 < x < 0.5.
+    source: the points with direction x > −0.4 in the source frame; target: those with
+    x < 0.5, moved by ``true_transform`` (target ≈ T source). Both get independent noise, so
+    the overlap −0.4 < x < 0.5 (about 64% of the source) has noisy true correspondences.
     """
-    points_a, dir_a = surface(count, generator)
-    points_b, dir_b = surface(count, generator)
-    source = points_a[dir_a[:, 0] > -0.4]
-    target = se3.act(true_transform, points_b[dir_b[:, 0] < 0.5])
+    points, direction = surface(count, generator)
+    source = points[direction[:, 0] > -0.4]
+    target = se3.act(true_transform, points[direction[:, 0] < 0.5])
     if noise > 0:
         source = source + noise * torch.randn(source.shape, generator=generator, dtype=F64)
         target = target + noise * torch.randn(target.shape, generator=generator, dtype=F64)
@@ -120,7 +126,7 @@ def test_estimate_normals_on_a_tilted_plane(generator):
 def test_exact_copy_is_recovered_to_round_off(generator, true_transform):
     points, _ = surface(1500, generator)
     result = icp.icp(points, se3.act(true_transform, points), config=ICPConfig(max_iterations=100))
-    assert result.converged and result.reason.startswith("relative change")
+    assert result.converged and result.reason.startswith("relative decrease")
     assert rotation_error_deg(result.transform, true_transform) < 1e-8
     assert translation_error(result.transform, true_transform) < 1e-10
     assert float(result.rms) < 1e-10
@@ -193,25 +199,29 @@ def test_batch_equals_single_runs(generator, true_transform):
 
 
 def test_large_rotation_needs_multistart(generator):
-    points, _ = surface(2500, generator)
+    points, _ = surface(2500, generator, scale=(1.0, 0.7, 0.5))
     T_true = se3.exp(torch.tensor([2.2, -1.0, 1.3, 0.5, 0.3, -0.4], dtype=F64))  # ≈ 154°
     source = icp.voxel_downsample(points, 0.12)
-    target = icp.voxel_downsample(se3.act(T_true, surface(2500, generator)[0]), 0.12)
-    config = ICPConfig(max_distance=1.0, min_distance=0.1, trim_fraction=0.9, max_iterations=20)
+    target = icp.voxel_downsample(se3.act(T_true, points), 0.12)
+    normals = icp.estimate_normals(target, 10)
+    config = ICPConfig(
+        method="point_to_plane", max_distance=1.0, min_distance=0.12, max_iterations=30
+    )
     start = icp.initial_guesses(source, target, se3.identity(1, dtype=F64)[:, :3, :3])
-    single = icp.icp(source, target, start[0], config)
+    single = icp.icp(source, target, start[0], config, normals)
     assert rotation_error_deg(single.transform, T_true) > 20
     guesses = icp.initial_guesses(source, target, icp.rotations_uniform(64))
-    best, runs = icp.icp_multistart(source, target, guesses, config, fitness_distance=0.1)
+    best, runs = icp.icp_multistart(source, target, guesses, config, 0.06, normals)
     assert runs.transform.shape == (64, 4, 4)
-    assert rotation_error_deg(best.transform, T_true) < 3
-    assert float(best.fitness) > 0.9
+    # The voxel grids of source and target differ, which limits the accuracy.
+    assert rotation_error_deg(best.transform, T_true) < 0.5
+    assert float(best.fitness) > 0.7
 
 
 def test_coarse_to_fine_recovers_large_rotation_precisely(generator):
-    points, _ = surface(6000, generator)
+    points, _ = surface(6000, generator, scale=(1.0, 0.7, 0.5))
     T_true = se3.exp(torch.tensor([-0.9, 2.0, 0.7, -0.2, 0.6, 0.3], dtype=F64))
-    target = se3.act(T_true, surface(6000, generator)[0])
+    target = se3.act(T_true, surface(6000, generator, scale=(1.0, 0.7, 0.5))[0])
     stages = (
         icp.Stage(0.15, ICPConfig(max_iterations=8, max_distance=1.0, min_distance=0.15), keep=4),
         icp.Stage(0.05, ICPConfig(max_iterations=20, max_distance=0.3, min_distance=0.05)),
@@ -247,7 +257,7 @@ def test_input_validation():
     cloud = torch.zeros(10, 3, dtype=F64)
     with pytest.raises(ValueError, match="icp_batch: argument 'source' must have shape"):
         icp.icp(torch.zeros(10, 2, dtype=F64), cloud)
-    with pytest.raises(TypeError, match="icp_batch: 'source' is torch.float64 but 'target'"):
+    with pytest.raises(TypeError, match=r"icp_batch: 'source' is torch.float64 but 'target'"):
         icp.icp(cloud, cloud.float())
     with pytest.raises(ValueError, match="icp: argument 'initial' must have shape \\(4, 4\\)"):
         icp.icp(cloud, cloud, torch.eye(4, dtype=F64)[None])
@@ -295,3 +305,33 @@ def test_chain_poses_compose_successive_steps(generator):
     # T̂_0(k+1) = T̂_0k T̂_(k,k+1): scan k+1 → scan k → scan 0.
     for k in range(4):
         assert torch.allclose(poses[k + 1], poses[k] @ relative[k], atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- real data
+
+_REPO = Path(__file__).resolve().parents[1]
+_BUNNY = _REPO / ".." / "shared" / "data" / "bunny"
+
+
+@pytest.mark.skipif(
+    not (_BUNNY / "bun.conf").is_file(),
+    reason=f"Stanford bunny data not found at {_BUNNY.resolve()} (the shared/data checkout "
+    "next to the repository); the synthetic tests above cover ICP itself",
+)
+def test_bunny_pairwise_chain_small(monkeypatch):
+    """Three real scans through experiments/bunny_pairwise.py, checked against bun.conf."""
+    spec = importlib.util.spec_from_file_location(
+        "bunny_pairwise", _REPO / "experiments" / "bunny_pairwise.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look the module up
+    spec.loader.exec_module(module)
+    names = ["bun000", "bun045", "top3"]
+    result = module.run(_BUNNY, names)
+    reference = stack(read_conf(_BUNNY / "bun.conf"), names)
+    rotation_deg, translation = pose_errors(result.poses, reference, first=0)
+    assert torch.equal(result.poses[0], torch.eye(4, dtype=F64))
+    assert float(rotation_deg.max()) < 0.5
+    assert float(translation.max()) < 1e-3  # metres
+    assert all(float(r.fitness) > 0.5 for r in result.pair_results)

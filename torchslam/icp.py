@@ -180,7 +180,7 @@ class ICPConfig:
     method: Literal["point_to_point", "point_to_plane"] = "point_to_point"
     # upper bound on the number of pose updates
     max_iterations: int = 50
-    # converged when |rms_(k−1) − rms_k| ≤ relative_tolerance · rms_(k−1)
+    # converged when rms_(k−1) − rms_k ≤ relative_tolerance · rms_(k−1) (no real decrease)
     relative_tolerance: float = 1e-6
     # initial correspondence gate g_0; None means no gate
     max_distance: float | None = None
@@ -223,7 +223,7 @@ class ICPStatus(enum.IntEnum):
 
 _REASONS = {
     ICPStatus.RUNNING: "not finished",
-    ICPStatus.CONVERGED: "relative change of the RMS error below tolerance",
+    ICPStatus.CONVERGED: "relative decrease of the RMS error below tolerance",
     ICPStatus.MAX_ITERATIONS: "maximum number of iterations reached",
     ICPStatus.TOO_FEW_CORRESPONDENCES: "too few correspondences within the gate",
 }
@@ -253,7 +253,7 @@ class ICPResult:
 
     @property
     def converged(self) -> Tensor:
-        """True where the relative change of the RMS error fell below tolerance, shape (...)."""
+        """True where the relative decrease of the RMS error fell below tolerance, shape (...)."""
         return self.status == ICPStatus.CONVERGED
 
     @property
@@ -407,9 +407,10 @@ def _icp_loop(
         running = status == ICPStatus.RUNNING
         few = running & (count < config.min_correspondences)
         status[few] = int(ICPStatus.TOO_FEW_CORRESPONDENCES)
-        change = (previous_rms - rms).abs()
+        # Signed: an RMS that went up (noise floor, a flip of the trimmed set) also stops.
+        decrease = previous_rms - rms
         settled = torch.isfinite(previous_rms) & (
-            change <= config.relative_tolerance * previous_rms
+            decrease <= config.relative_tolerance * previous_rms
         )
         # An exact fit (rms = 0) needs no update.
         settled = running & ~few & (settled | (rms == 0))
@@ -451,7 +452,8 @@ def icp(
 
     Iteration k: move the source by T_k, find each point's nearest target point (KD-tree),
     keep the gated and trimmed correspondences (:class:`ICPConfig`), stop if the inlier RMS
-    changed by at most ``relative_tolerance`` relative to the previous iteration, else solve
+    decreased by at most ``relative_tolerance`` relative to the previous iteration (or went
+    up), else solve
     for T_(k+1) in closed form (weighted Kabsch over the kept pairs) or, for point-to-plane,
     by one Gauss–Newton step on the linearized plane distances (left update exp(δ) T_k).
 

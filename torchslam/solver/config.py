@@ -44,7 +44,7 @@ class SolverConfig:
     # Maximum number of iterations (linearizations) per solve.
     max_iterations: int = 100
     # Stop when |ΔF| ≤ function_tolerance · F after an accepted step.
-    function_tolerance: float = 1e-12
+    function_tolerance: float = 1e-10
     # Stop when max |∇F| ≤ gradient_tolerance.
     gradient_tolerance: float = 1e-12
     # Stop when ‖δ‖ ≤ parameter_tolerance · (‖x‖ + parameter_tolerance).

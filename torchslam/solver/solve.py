@@ -151,6 +151,12 @@ def solve_tensors(
             # Convergence tests (Ceres-like), on accepted steps.
             decrease = cost - new_cost
             f_conv = accepted & (decrease.abs() <= config.function_tolerance * cost)
+            if algorithm == "levenberg_marquardt":
+                # Nothing left to gain: even the model predicts a negligible decrease (the
+                # step is then typically rejected at round-off level, and λ would only grow).
+                f_conv = f_conv | (
+                    active & ok & (predicted.abs() <= config.function_tolerance * cost)
+                )
             p_conv = (
                 active
                 & ok
