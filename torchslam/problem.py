@@ -190,6 +190,10 @@ class PointMapProblem(nn.Module):
                 fn, valid, pose_index, point_index, fixed_poses, fixed_points, self.diagnostics
             )
 
+        # Padding slots may hold any index (e.g. -1); point them at row 0 so that the gathers
+        # of residuals() and the Jacobians stay in range (their values are masked anyway).
+        pose_index = torch.where(valid, pose_index, 0)
+        point_index = torch.where(valid, point_index, 0)
         self.pose_tangent = nn.Parameter(se3.log(poses.detach()).clone())
         self.points = nn.Parameter(points.detach().clone())
         self.data = PointMapData(
