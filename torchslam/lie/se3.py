@@ -101,12 +101,11 @@ def _exp(xi: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)
     a, b = _series.sinc_coefficients(theta2)
     c = _series.jacobian_coefficient_c(theta2)
-    W = _hat(omega)
-    W2 = W @ W
-    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
-    R = eye + a[..., None, None] * W + b[..., None, None] * W2
-    J = eye + b[..., None, None] * W + c[..., None, None] * W2
-    return _assemble(R, (J @ v[..., None]).squeeze(-1))
+    R = so3._skew_quadratic(omega, theta2, a, b)
+    # t = J_l(ω) v = v + b ω × v + c ω × (ω × v), without forming J_l.
+    w_x_v = torch.linalg.cross(omega, v, dim=-1)
+    t = v + b[..., None] * w_x_v + c[..., None] * torch.linalg.cross(omega, w_x_v, dim=-1)
+    return _assemble(R, t)
 
 
 def exp(xi: Tensor) -> Tensor:

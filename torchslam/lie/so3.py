@@ -84,12 +84,37 @@ def _vee(Omega: Tensor) -> Tensor:
     )
 
 
+def _skew_quadratic(omega: Tensor, theta2: Tensor, first: Tensor, second: Tensor) -> Tensor:
+    """I + first·[ω]× + second·[ω]×², built entrywise from [ω]×² = ωωᵀ − θ² I.
+
+    Rodrigues' R (first = sin θ/θ, second = (1 − cos θ)/θ²) and the left Jacobian
+    (first = (1 − cos θ)/θ², second = (θ − sin θ)/θ³) both have this form; building the nine
+    entries directly avoids two batched 3×3 matmuls.
+    """
+    x, y, z = omega.unbind(-1)
+    diagonal = 1.0 - second * theta2
+    fx, fy, fz = first * x, first * y, first * z
+    sxy, sxz, syz = second * x * y, second * x * z, second * y * z
+    return torch.stack(
+        (
+            diagonal + second * x * x,
+            sxy - fz,
+            sxz + fy,
+            sxy + fz,
+            diagonal + second * y * y,
+            syz - fx,
+            sxz - fy,
+            syz + fx,
+            diagonal + second * z * z,
+        ),
+        dim=-1,
+    ).unflatten(-1, (3, 3))
+
+
 def _exp(omega: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)
     a, b = _series.sinc_coefficients(theta2)
-    W = _hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
+    return _skew_quadratic(omega, theta2, a, b)
 
 
 def exp(omega: Tensor) -> Tensor:
@@ -175,9 +200,7 @@ def _jl(omega: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)
     _, b = _series.sinc_coefficients(theta2)
     c = _series.jacobian_coefficient_c(theta2)
-    W = _hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye + b[..., None, None] * W + c[..., None, None] * (W @ W)
+    return _skew_quadratic(omega, theta2, b, c)
 
 
 def _jl_inv(omega: Tensor) -> Tensor:
