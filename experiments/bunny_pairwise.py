@@ -195,6 +195,11 @@ def main(argv: list[str] | None = None) -> int:
             f"{pair:<26} {float(res.fitness):7.3f} {float(res.rms) * 1000:7.3f} "
             f"{int(res.iterations):5d} {sec:5.2f}"
         )
+    yardstick = result.pair_results[0].gate * 1000
+    print(
+        f"(fitness: fraction of source points within {float(yardstick):.0f} mm of the target at "
+        "the final pose; rms over those points; iters: last stage)"
+    )
     print()
     print(f"{'scan':<10} {'rot err deg':>11} {'trans err mm':>12}")
     for i, name in enumerate(names):

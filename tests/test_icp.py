@@ -184,6 +184,33 @@ def test_point_to_plane_converges_fast(generator, true_transform):
         icp.icp(source, target, config=config)
 
 
+def test_point_to_plane_far_from_origin_and_on_a_plane(generator, true_transform):
+    source, target = views(generator, true_transform, noise=0.0, count=2000)
+    offset = torch.tensor([1000.0, -500.0, 200.0], dtype=F64)
+    far_source = source + offset
+    far_target = target + offset
+    # target + o = T (source + o − o) + o  ⇒  T' = Trans(o) T Trans(−o).
+    shift = se3.from_rotation_translation(torch.eye(3, dtype=F64), offset)
+    T_far = shift @ true_transform @ se3.inverse(shift)
+    config = ICPConfig(method="point_to_plane", max_distance=0.5, min_distance=0.02)
+    initial = shift @ se3.inverse(shift)  # identity, built in the far frame
+    normals = icp.estimate_normals(far_target, neighbors=12)
+    result = icp.icp(far_source, far_target, initial, config, normals)
+    # Compare where the points land: the translation of T_far amplifies rotation errors by
+    # the offset (|o| ≈ 1100), the cloud itself is about 2 units across.
+    moved = se3.act(result.transform, far_source) - se3.act(T_far, far_source)
+    assert float(moved.norm(dim=-1).max()) < 1e-4  # as accurate as at the origin
+    assert rotation_error_deg(result.transform, T_far) < 0.01
+    # A plane constrains only 3 of 6 directions; the others must stay put (no blow-up).
+    plane = torch.cat((torch.rand(400, 2, generator=generator, dtype=F64), torch.zeros(400, 1)), -1)
+    lifted = plane + torch.tensor([0.0, 0.0, 0.05], dtype=F64)
+    flat = icp.icp(plane, lifted, None, config, icp.estimate_normals(lifted, 8))
+    assert torch.allclose(
+        flat.transform[:3, 3], torch.tensor([0.0, 0.0, 0.05], dtype=F64), atol=1e-9
+    )
+    assert torch.allclose(flat.transform[:3, :3], torch.eye(3, dtype=F64), atol=1e-9)
+
+
 def test_batch_equals_single_runs(generator, true_transform):
     source, target = views(generator, true_transform, noise=0.001, count=1200)
     initial = se3.exp(0.1 * torch.randn(3, 6, generator=generator, dtype=F64))

@@ -92,9 +92,9 @@ def test_min_views_and_pairs(generator):
     assert chain.num_edges < every.num_edges
 
 
-def test_conflicting_component_is_dropped_or_trimmed():
+def test_conflicts_are_refused_greedily_or_dropped():
     # Scan 0 has two points (a, a') 0.8 apart; scan 1 matches a, scan 2 matches a', and
-    # scans 1 and 2 match each other: {a, b, c, a'} holds scan 0 twice.
+    # scans 1 and 2 match each other: {a, b, c, a'} would hold scan 0 twice.
     eye = torch.eye(4, dtype=F64).expand(3, 4, 4)
     a, a2 = [0.0, 0.0, 0.0], [0.8, 0.0, 0.0]
     clouds = [
@@ -103,19 +103,19 @@ def test_conflicting_component_is_dropped_or_trimmed():
         torch.tensor([[0.65, 0.0, 0.0], [5.0, 5.1, 5.0]], dtype=F64),
     ]
     pairs = [(0, 1), (1, 2), (0, 2)]
-    dropped = tracks.build_tracks(clouds, eye, radius=0.6, pairs=pairs)
+    dropped = tracks.build_tracks(clouds, eye, radius=0.6, pairs=pairs, conflicts="drop")
     assert dropped.num_conflicts == 1
     assert dropped.num_points == 1  # only the far-away, consistent point remains
     assert dropped.source_index.tolist() == [2, 1, 1]
-    trimmed = tracks.build_tracks(clouds, eye, radius=0.6, pairs=pairs, conflicts="closest")
-    assert trimmed.num_conflicts == 1 and trimmed.num_points == 2
+    # Greedy: a–b (0.1) and a'–c (0.15) merge first; b–c (0.55) would repeat scan 0.
+    greedy = tracks.build_tracks(clouds, eye, radius=0.6, pairs=pairs)
+    assert greedy.num_conflicts == 1 and greedy.num_points == 3
     views = []
-    for j in range(2):
-        on_track = trimmed.point_index == j
-        pose, source = trimmed.pose_index[on_track], trimmed.source_index[on_track]
+    for j in range(3):
+        on_track = greedy.point_index == j
+        pose, source = greedy.pose_index[on_track], greedy.source_index[on_track]
         views.append(sorted(zip(pose.tolist(), source.tolist(), strict=True)))
-    # Centroid of {a, b, c, a'} is x = 0.3875: a (0.3875 away) beats a' (0.4125 away).
-    assert [(0, 0), (1, 0), (2, 0)] in views
+    assert sorted(views) == [[(0, 0), (1, 0)], [(0, 1), (2, 0)], [(0, 2), (1, 1), (2, 1)]]
 
 
 def test_mutual_nearest_neighbors():

@@ -309,20 +309,31 @@ def _inlier_mask(distance: Tensor, gate: Tensor, trim_fraction: float) -> Tensor
 
 
 def _point_to_plane_step(moved: Tensor, matched: Tensor, normals: Tensor, mask: Tensor) -> Tensor:
-    """Left increment exp(δ) minimizing Σ (n · (exp(δ) p − q))² to first order, (B, 4, 4).
+    """Increment ΔT minimizing Σ (n · (ΔT p − q))² to first order over the kept pairs, (B, 4, 4).
 
-    With p' ≈ p + ω × p + v: r = n·(p − q) + (p × n)·ω + n·v, J = [p × n, n], δ = (ω, v).
+    ΔT = exp(δ) about the centroid c of the kept points (for conditioning), δ = (ω, v): with
+    p' ≈ p + ω × (p − c) + v, r = n·(p − q) + ((p − c) × n)·ω + n·v, so J = [(p − c) × n, n]
+    and δ solves the Gauss–Newton normal equations JᵀJ δ = −Jᵀ r.
     """
     w = mask.to(moved.dtype)[..., None]
+    count = w.sum(-2).clamp_min(1.0)  # (B, 1)
+    centroid = (w * moved).sum(-2) / count  # (B, 3)
+    arm = moved - centroid[:, None]
     residual = ((moved - matched) * normals).sum(-1, keepdim=True)
-    J = torch.cat((torch.linalg.cross(moved, normals), normals), dim=-1)  # (B, N, 6)
+    J = torch.cat((torch.linalg.cross(arm, normals), normals), dim=-1)  # (B, N, 6)
     H = (J * w).transpose(-1, -2) @ J
     g = (J * w).transpose(-1, -2) @ residual
-    # A tiny ridge keeps H invertible for planar overlaps (unconstrained directions stay put).
-    ridge = 1e-12 * H.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)[:, None, None]
+    # A tiny ridge keeps H invertible for degenerate overlaps (a plane leaves 3 directions
+    # free; there g vanishes and they stay put). Rows without data get H = I, g = 0.
     eye = torch.eye(6, dtype=H.dtype, device=H.device)
-    delta = -torch.linalg.solve(H + ridge * eye, g).squeeze(-1)
-    return se3.exp(delta)
+    scale = H.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
+    empty = scale <= 0
+    H = torch.where(empty, eye, H + 1e-12 * scale * eye)
+    delta = -torch.linalg.solve(H, torch.where(empty, torch.zeros_like(g), g)).squeeze(-1)
+    step = se3.exp(delta)
+    # Rotate about the centroid: Trans(c) exp(δ) Trans(−c).
+    shift = step[:, :3, 3] + centroid - (step[:, :3, :3] @ centroid[..., None]).squeeze(-1)
+    return se3.from_rotation_translation(step[:, :3, :3], shift)
 
 
 def icp_batch(

@@ -8,11 +8,13 @@ scan points:
 1. for every pair of scans (i, k), points a of scan i and b of scan k match when each is the
    other's nearest neighbour in the world frame and they lie within ``radius`` (mutual nearest
    neighbours, KD-trees);
-2. the matches are the edges of a graph over all scan points; each connected component is a
-   track, i.e. one world point j with its observations (i, a, X_ia);
-3. a component that holds two points of the same scan is inconsistent (a chain of matches that
-   drifted): it is dropped, or only the observation of each scan closest to the component's
-   centroid is kept (``conflicts="closest"``);
+2. the matches are the edges of a graph over all scan points; connected points form a track,
+   i.e. one world point j with its observations (i, a, X_ia);
+3. a track must not hold two points of one scan. With many overlapping scans, chains of
+   matches between neighbouring samples would link such points. ``conflicts="greedy"`` (the
+   default) therefore merges matches in order of increasing distance and skips any merge that
+   would put two points of one scan into one track (Kruskal-like); ``conflicts="drop"`` takes
+   plain connected components and drops every inconsistent one;
 4. tracks seen in fewer than ``min_views`` scans are dropped.
 
 The initial world point is the average of its observations moved into the world frame,
@@ -61,7 +63,8 @@ class Tracks:
     points: Tensor
     # number of scans m (poses), including scans without observations
     num_poses: int
-    # components dropped (or trimmed, with conflicts="closest") for holding one scan twice
+    # matches skipped (conflicts="greedy") or components dropped ("drop") to keep every
+    # track free of two points of one scan
     num_conflicts: int
 
     @property
@@ -154,6 +157,39 @@ def _mutual(
     return np.stack((found[mutual], partner[mutual]), axis=-1).astype(np.int64)
 
 
+def _greedy_components(
+    row: np.ndarray, col: np.ndarray, scan: np.ndarray, total: int
+) -> tuple[np.ndarray, int]:
+    """Union-find over matches in the given order, refusing merges that repeat a scan.
+
+    Returns a component label per point and the number of refused merges.
+    """
+    parent = list(range(total))
+    # Bit mask of the scans in each component (Python ints: any number of scans).
+    scans = [1 << int(s) for s in scan.tolist()]
+
+    def find(x: int) -> int:
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:  # path compression
+            parent[x], x = root, parent[x]
+        return root
+
+    refused = 0
+    for a, b in zip(row.tolist(), col.tolist(), strict=True):
+        ra, rb = find(a), find(b)
+        if ra == rb:
+            continue
+        if scans[ra] & scans[rb]:
+            refused += 1
+            continue
+        parent[rb] = ra
+        scans[ra] |= scans[rb]
+    label = np.fromiter((find(x) for x in range(total)), dtype=np.int64, count=total)
+    return label, refused
+
+
 def build_tracks(
     clouds: Sequence[Tensor],
     poses: Tensor,
@@ -161,7 +197,7 @@ def build_tracks(
     *,
     pairs: Sequence[tuple[int, int]] | None = None,
     min_views: int = 2,
-    conflicts: Literal["drop", "closest"] = "drop",
+    conflicts: Literal["greedy", "drop"] = "greedy",
 ) -> Tracks:
     """Build point tracks from scans and their current poses (module docstring).
 
@@ -173,8 +209,9 @@ def build_tracks(
             downsampling pitch plus the pose error.
         pairs: scan pairs (i, k) to match; all pairs i < k by default.
         min_views: smallest number of scans a track must be seen in, ≥ 2.
-        conflicts: ``"drop"`` a track that holds two points of one scan, or keep only the
-            ``"closest"`` such point (to the track's world centroid) per scan.
+        conflicts: ``"greedy"``: merge matches shortest first, skipping merges that would
+            put two points of one scan into a track; ``"drop"``: connected components,
+            dropping those that hold one scan twice.
 
     Returns:
         :class:`Tracks` (edge arrays sorted by point, then pose; X_0j initial points).
@@ -198,8 +235,8 @@ def build_tracks(
         raise ValueError(f"{fn}: argument 'radius' must be > 0, got {radius}")
     if min_views < 2:
         raise ValueError(f"{fn}: argument 'min_views' must be >= 2, got {min_views}")
-    if conflicts not in ("drop", "closest"):
-        raise ValueError(f"{fn}: argument 'conflicts' must be 'drop' or 'closest'")
+    if conflicts not in ("greedy", "drop"):
+        raise ValueError(f"{fn}: argument 'conflicts' must be 'greedy' or 'drop'")
     if pairs is None:
         pairs = list(itertools.combinations(range(m), 2))
     for i, k in pairs:
@@ -213,50 +250,32 @@ def build_tracks(
     offsets = np.concatenate(([0], np.cumsum(sizes)))
     total = int(offsets[-1])
 
-    # 1–2. Mutual nearest neighbours of every pair are the edges of one graph.
-    rows, cols = [], []
-    for i, k in pairs:
-        matches = _mutual(world[i], world[k], trees[i], trees[k], radius)
-        rows.append(offsets[i] + matches[:, 0])
-        cols.append(offsets[k] + matches[:, 1])
-    row = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
-    col = np.concatenate(cols) if cols else np.zeros(0, dtype=np.int64)
-    graph = coo_matrix((np.ones(len(row), dtype=np.int8), (row, col)), shape=(total, total))
-    _, label = connected_components(graph, directed=False)
-
     scan = np.repeat(np.arange(m, dtype=np.int64), sizes)
     local = np.arange(total, dtype=np.int64) - offsets[scan]
     all_world = np.concatenate(world) if total else np.zeros((0, 3))
 
-    # 3. Components holding one scan twice.
-    key = label.astype(np.int64) * m + scan
-    unique_keys, key_counts = np.unique(key, return_counts=True)
-    bad_components = np.unique(unique_keys[key_counts > 1] // m)
-    num_conflicts = len(bad_components)
-    keep = np.ones(total, dtype=bool)
-    if num_conflicts:
-        in_bad = np.isin(label, bad_components)
-        if conflicts == "drop":
-            keep &= ~in_bad
-        else:
-            count = np.bincount(label, minlength=total).astype(np.float64)
-            centroid = (
-                np.stack(
-                    [
-                        np.bincount(label, weights=all_world[:, c], minlength=total)
-                        for c in range(3)
-                    ],
-                    axis=-1,
-                )
-                / np.maximum(count, 1)[:, None]
-            )
-            distance = np.linalg.norm(all_world - centroid[label], axis=-1)
-            order = np.lexsort((distance, key))  # by key, then by distance
-            first = np.ones(total, dtype=bool)
-            first[1:] = key[order][1:] != key[order][:-1]
-            closest = np.zeros(total, dtype=bool)
-            closest[order[first]] = True
-            keep &= ~in_bad | closest
+    # 1. Mutual nearest neighbours of every pair: the edges of one graph over all points.
+    rows, cols = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    for i, k in pairs:
+        matches = _mutual(world[i], world[k], trees[i], trees[k], radius)
+        rows.append(offsets[i] + matches[:, 0])
+        cols.append(offsets[k] + matches[:, 1])
+    row, col = np.concatenate(rows), np.concatenate(cols)
+
+    # 2–3. Tracks without two points of one scan.
+    if conflicts == "greedy":
+        length = np.linalg.norm(all_world[row] - all_world[col], axis=-1)
+        order = np.argsort(length, kind="stable")
+        label, num_conflicts = _greedy_components(row[order], col[order], scan, total)
+        keep = np.ones(total, dtype=bool)
+    else:
+        graph = coo_matrix((np.ones(len(row), dtype=np.int8), (row, col)), shape=(total, total))
+        _, label = connected_components(graph, directed=False)
+        key = label.astype(np.int64) * m + scan
+        unique_keys, key_counts = np.unique(key, return_counts=True)
+        bad_components = np.unique(unique_keys[key_counts > 1] // m)
+        num_conflicts = len(bad_components)
+        keep = ~np.isin(label, bad_components)
 
     # 4. Tracks with enough views.
     views = np.bincount(label[keep], minlength=total)

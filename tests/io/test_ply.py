@@ -209,6 +209,13 @@ def test_malformed_ascii_vertex_names_line(tmp_path, bad_line, message):
         read_ply(_write(tmp_path, "bad.ply", content))
 
 
+def test_misaligned_ascii_vertex_lines_are_caught(tmp_path):
+    # Same number of values in total, but one line short and the next long.
+    content = STANFORD_ASCII.replace("0.0360343 0.0425949 \n0.5", "0.0360343 \n0.0425949 0.5")
+    with pytest.raises(ValueError, match=r"line 14 \(element 'vertex'\): expected 3 values, got 2"):
+        read_ply(_write(tmp_path, "bad.ply", content))
+
+
 def test_malformed_ascii_list_names_line(tmp_path):
     content = STANFORD_ASCII.replace("1 1\n", "2 1\n")
     with pytest.raises(ValueError, match="line 18 \\(element 'range_grid'\\): too few values"):

@@ -126,7 +126,8 @@ def test_pose_errors_measure_a_known_perturbation(generator):
 
 
 @pytest.mark.skipif(
-    not (BUNNY / "bun.conf").is_file(), reason=f"bunny data not found at {BUNNY} (../shared)"
+    not (BUNNY / "bun.conf").is_file(),
+    reason=f"Stanford bunny data not found at {BUNNY.resolve()} (../shared/data/bunny)",
 )
 def test_bunny_conf_overlap_of_bun000_and_bun045():
     """shared/data/README.md: at bun.conf, bun045 covers about half of bun000 within 1 mm."""

@@ -222,11 +222,13 @@ def _parse_ascii_element(
     props = element.properties
     if not any(p.is_list for p in props):
         width = len(props)
+        # Per-line token counts too: equal totals could hide a short and a long line.
+        aligned = all(len(line.split()) == width for line in block)
         try:
-            flat = np.array(" ".join(block).split(), dtype=np.float64)
+            flat = np.array(" ".join(block).split(), dtype=np.float64) if aligned else None
         except ValueError:
             flat = None
-        if flat is None or flat.size != width * element.count:
+        if flat is None:
             # Slow path only to find and name the offending line.
             for line, number in zip(block, numbers, strict=True):
                 tokens = line.split()
@@ -244,6 +246,7 @@ def _parse_ascii_element(
                             path,
                             f"line {number} (element '{element.name}'): not a number: {token!r}",
                         ) from None
+            flat = np.array([float(t) for t in " ".join(block).split()], dtype=np.float64)
         table = flat.reshape(element.count, width)
         return {p.name: table[:, i].astype(p.dtype) for i, p in enumerate(props)}
     columns: dict[str, list] = {p.name: [] for p in props}

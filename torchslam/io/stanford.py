@@ -57,7 +57,7 @@ def read_conf(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) ->
     with open(path, encoding="ascii", errors="replace") as f:
         for number, raw in enumerate(f, start=1):
             words = raw.split()
-            if not words or words[0] in ("camera", "#"):
+            if not words or words[0] == "camera" or words[0].startswith("#"):
                 continue
             if words[0] != "bmesh":
                 raise ValueError(
