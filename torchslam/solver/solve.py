@@ -44,8 +44,14 @@ step_norm (B,), accepted (B,), active (B,), seconds."""
 
 
 def retract(pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor]:
-    """x ⊞ δ: ξ ← Log(Exp(ξ)·Exp(δp)) (seed eq. L1/L2), X ← X + δl."""
-    return se3._log(se3._exp(pose_tangent) @ se3._exp(dp)), points + dl
+    """x ⊞ δ: ξ ← Log(Exp(ξ)·Exp(δp)) (seed eq. L1/L2), X ← X + δl.
+
+    A pose whose step is exactly zero (a fixed pose) keeps its ξ bit for bit: the Log∘Exp
+    round trip would move it by a few ulps.
+    """
+    moved = se3._log(se3._exp(pose_tangent) @ se3._exp(dp))
+    unmoved = (dp == 0).all(dim=-1, keepdim=True)
+    return torch.where(unmoved, pose_tangent, moved), points + dl
 
 
 def _gradient_norm(lin) -> Tensor:
