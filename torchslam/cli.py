@@ -1,8 +1,9 @@
 """The ``torchslam`` command: a thin argparse front end over the library.
 
-Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure) and
-``bench`` (the solver benchmark). Bad input (a missing file, an impossible option value) gives
-a one-line message on stderr and exit status 2 — never a traceback.
+Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure),
+``bench`` (the solver benchmark) and ``posegraph`` (optimize a g2o pose graph). Bad input (a
+missing file, a malformed file, an impossible option value) gives a one-line message on stderr
+and exit status 2 — never a traceback.
 """
 
 from __future__ import annotations
@@ -82,6 +83,35 @@ def _parser() -> argparse.ArgumentParser:
     from torchslam.benchmark import add_arguments
 
     add_arguments(bench)
+
+    posegraph = sub.add_parser(
+        "posegraph",
+        help="optimize a g2o pose graph with Levenberg-Marquardt",
+        description="Read a 3D (VERTEX_SE3:QUAT/EDGE_SE3:QUAT) or 2D (VERTEX_SE2/EDGE_SE2) g2o "
+        "pose graph, minimize ½ Σ rᵀΩr with Levenberg-Marquardt and a sparse linear solver "
+        "(one progress line per iteration), print the costs before and after, optionally "
+        "write the optimized graph and a figure of the trajectory before and after.",
+    )
+    posegraph.add_argument("file", type=Path, help="the g2o file")
+    posegraph.add_argument("--out", type=Path, help="write the optimized graph (g2o) here")
+    posegraph.add_argument(
+        "--plot", type=Path, help="write a figure (x-y, x-z, cost) here, e.g. trajectory.png"
+    )
+    posegraph.add_argument(
+        "--init",
+        choices=["file", "odometry", "chordal"],
+        default="file",
+        help="initial poses: the file's vertices (default), the odometry chain, or chordal",
+    )
+    posegraph.add_argument(
+        "--max-iterations", type=_positive_int, default=100, help="LM iterations (100)"
+    )
+    posegraph.add_argument(
+        "--linear-solver", choices=["auto", "sparse", "dense"], default="auto", help="(auto)"
+    )
+    posegraph.add_argument(
+        "--threads", type=_positive_int, default=1, help="torch CPU threads (default 1)"
+    )
     return parser
 
 
@@ -111,6 +141,20 @@ def main(argv: list[str] | None = None) -> int:
             from torchslam.benchmark import run
 
             run(args)
+        elif args.command == "posegraph":
+            from torchslam.posegraph.command import PoseGraphOptions, run_posegraph
+
+            run_posegraph(
+                PoseGraphOptions(
+                    path=args.file,
+                    out=args.out,
+                    plot=args.plot,
+                    init=args.init,
+                    max_iterations=args.max_iterations,
+                    linear_solver=args.linear_solver,
+                    threads=args.threads,
+                )
+            )
     except (ValueError, TypeError, OSError) as error:
         print(f"torchslam {args.command}: error: {error}", file=sys.stderr)
         return 2
