@@ -168,7 +168,7 @@ def test_huber_loss_gives_half_sum_of_rho():
 
     expected = 0.5 * sum(huber(s) for s in (0.25, 0.0, 0.01, 1.25, 0.0, 0.04))
     torch.testing.assert_close(problem.cost(), torch.tensor([expected], dtype=F64))
-    assert float(problem.cost()) < _HAND_COST  # the kernel down-weights the two large ones
+    assert float(problem.cost().detach()) < _HAND_COST  # the kernel down-weights the two large ones
     # The kernel does not change the residuals themselves.
     torch.testing.assert_close(problem.residuals(), _hand_residuals(), atol=1e-12, rtol=0)
 
@@ -303,9 +303,9 @@ def test_cost_and_whitened_residuals_gradcheck_wrt_information():
 
 def test_robust_cost_gradcheck():
     problem = _scene_problem(seed=9, batch_size=1, num_poses=3, num_points=5, perturb=0.2)
-    data = dataclasses.replace(problem.data, loss=HuberLoss(0.1))
+    data = dataclasses.replace(problem.data, loss=HuberLoss(1.0))
     s = data.squared_norms(problem.raw_residuals().detach())
-    assert bool((s > 0.01).any()) and bool((s < 0.01).any())  # both sides of the knee
+    assert bool((s > 1.0).any()) and bool((s < 1.0).any())  # both sides of the knee
 
     def cost(pose_tangent, points, observations):
         replaced = dataclasses.replace(data, observations=observations)
@@ -347,12 +347,13 @@ def _scene_with_uneven_batch():
     """B = 3 scene whose problems have different numbers of observations (E_b = 36, 33, 30)."""
     scene = make_scene(4, 12, batch_size=3, visible_fraction=0.75, seed=11)
     obs, vis = scene.to_dense()
-    # Drop observations of frames that keep ≥ 3 and of points that keep ≥ 1 view.
-    dropped = {1: [(1, 0), (2, 1), (3, 2)], 2: [(1, 0), (2, 1), (3, 2), (1, 3), (2, 4), (3, 5)]}
-    for b, pairs in dropped.items():
-        for i, j in pairs:
-            vis[b, i, j] = False
-            obs[b, i, j] = 0.0
+    # Problem b loses the first 3·b of its visible entries of frames 1..3 (each point is seen
+    # by 3 of the 4 frames, so every point keeps a view; the tests check no warning is raised).
+    for b in (1, 2):
+        i, j = vis[b, 1:].nonzero(as_tuple=True)
+        i, j = i[: 3 * b] + 1, j[: 3 * b]
+        vis[b, i, j] = False
+        obs[b, i, j] = 0.0
     return scene, obs, vis
 
 
@@ -444,11 +445,11 @@ def test_from_scene_at_ground_truth_has_the_scene_noise_as_residuals():
     noise = noisy.observations - clean.observations
     problem = PointMapProblem.from_scene(noisy)
     torch.testing.assert_close(problem.raw_residuals(), noise, atol=1e-13, rtol=0)
-    r = problem.raw_residuals()[noisy.valid]
+    r = problem.raw_residuals().detach()[noisy.valid]
     assert 0.008 < float(r.std()) < 0.012  # sanity: it is the 1 cm noise, not zero
     zero = PointMapProblem.from_scene(clean)
-    assert float(zero.raw_residuals().abs().max()) < 1e-13
-    assert float(zero.cost().max()) < 1e-24
+    assert float(zero.raw_residuals().detach().abs().max()) < 1e-13
+    assert float(zero.cost().detach().max()) < 1e-24
     torch.testing.assert_close(
         problem.cost(), 0.5 * (noise**2).sum((-1, -2)), atol=1e-13, rtol=1e-10
     )
@@ -462,7 +463,7 @@ def test_from_scene_with_given_initialization_and_loss():
     torch.testing.assert_close(problem.poses(), poses, atol=1e-13, rtol=0)
     torch.testing.assert_close(problem.points.detach(), points)
     assert isinstance(problem.data.loss, HuberLoss)
-    assert float(problem.cost()) > float(PointMapProblem.from_scene(scene).cost())
+    assert float(problem.cost().detach()) > float(PointMapProblem.from_scene(scene).cost().detach())
 
 
 # --------------------------------------------------------------------------- bad input
@@ -524,7 +525,7 @@ def test_non_finite_points_and_poses_are_rejected():
         PointMapProblem(**inputs)
     inputs = _bad()
     inputs["poses"][1, 2, 0, 3] = float("inf")
-    with pytest.raises(ValueError, match="'poses'.*non-finite"):
+    with pytest.raises(ValueError, match=r"'poses'.*non-finite"):
         PointMapProblem(**inputs)
 
 
@@ -544,9 +545,9 @@ def test_mismatched_batch_sizes(name, shape):
     inputs[name] = torch.zeros(shape, dtype=F64)
     if name == "poses":
         inputs[name][..., :, :] = torch.eye(4, dtype=F64)
-    with pytest.raises(ValueError, match="batch sizes differ|must have shape") as info:
+    with pytest.raises(ValueError, match="batch sizes differ") as info:
         PointMapProblem(**inputs)
-    assert f"'{name}'" in str(info.value) or "'points'" in str(info.value)
+    assert f"'{name}' has B = {shape[0]}" in str(info.value)
 
 
 @pytest.mark.parametrize("name", ["pose_index", "point_index"])
@@ -565,16 +566,16 @@ def test_index_batch_or_length_mismatch(name):
 def test_mixed_float_dtypes_are_rejected(name):
     inputs = _bad()
     inputs[name] = inputs[name].float()
-    with pytest.raises(TypeError, match=rf"'{name}' is torch.float32"):
+    with pytest.raises(TypeError, match=rf"'{name}' is torch\.float32"):
         PointMapProblem(**inputs)
 
 
 def test_mixed_dtype_weights_and_wrong_dtypes_are_rejected():
-    with pytest.raises(TypeError, match="'weights' is torch.float32"):
+    with pytest.raises(TypeError, match=r"'weights' is torch\.float32"):
         PointMapProblem(**_bad(), weights=torch.ones(2, 12, dtype=torch.float32))
-    with pytest.raises(TypeError, match="'pose_index' must be an integer tensor"):
+    with pytest.raises(TypeError, match=r"'pose_index' must be an integer tensor"):
         PointMapProblem(**_bad(pose_index=torch.zeros(2, 12)))
-    with pytest.raises(TypeError, match="'point_index' must be a torch.Tensor"):
+    with pytest.raises(TypeError, match=r"'point_index' must be a torch\.Tensor"):
         PointMapProblem(**_bad(point_index=[[0] * 12] * 2))
     with pytest.raises(TypeError, match="'valid' must be a bool tensor"):
         PointMapProblem(**_bad(), valid=torch.ones(2, 12))
@@ -590,7 +591,8 @@ def test_mixed_dtype_weights_and_wrong_dtypes_are_rejected():
         ("observations", torch.zeros(2, 12, 2, dtype=F64), "'observations' must have shape"),
         ("points", torch.zeros(2, 4, 4, dtype=F64), "'points' must have shape"),
         ("poses", torch.zeros(2, 3, 3, 4, dtype=F64), "'poses' must have shape"),
-        ("poses", torch.eye(4, dtype=F64).expand(3, 4, 4), r"poses \(B, m, 4, 4\)"),
+        ("poses", torch.eye(4, dtype=F64).expand(3, 4, 4), r"'poses' must have shape"),
+        ("poses", torch.eye(4, dtype=F64).expand(1, 2, 3, 4, 4), r"poses \(B, m, 4, 4\)"),
         ("observations", torch.zeros(2, 2, 12, 3, dtype=F64), r"observations \(B, E, 3\)"),
     ],
 )
@@ -618,7 +620,7 @@ def test_negative_weight_names_problem_and_observation():
         PointMapProblem(**_bad(), weights=weights)
     assert "problem 1, observation 4 has -0.5" in str(info.value)
     weights[1, 4] = float("nan")
-    with pytest.raises(ValueError, match="'weights'.*non-finite"):
+    with pytest.raises(ValueError, match=r"'weights'.*non-finite"):
         PointMapProblem(**_bad(), weights=weights)
 
 
@@ -706,13 +708,15 @@ def test_from_dense_bad_input():
         PointMapProblem.from_dense(poses, points, obs, vis[:, :, :5])
     with pytest.raises(TypeError, match="'visibility' must be a bool tensor"):
         PointMapProblem.from_dense(poses, points, obs, vis.double())
-    with pytest.raises(ValueError, match=r"'observations' must have shape \(B, m, n, 3\)"):
+    with pytest.raises(ValueError, match=r"'observations' must have shape.*got \(4, 12, 3\)"):
         PointMapProblem.from_dense(poses, points, obs[0], vis[0])
+    with pytest.raises(ValueError, match=r"'observations' must have shape \(B, m, n, 3\)"):
+        PointMapProblem.from_dense(poses, points, obs[None], vis[None])
     with pytest.raises(ValueError, match="'weights'"):
         PointMapProblem.from_dense(poses, points, obs, vis, weights=torch.ones(3, 4, 12, 3))
     with pytest.raises(ValueError, match="'weights'"):
         PointMapProblem.from_dense(poses, points, obs, vis, weights=torch.ones(3, 4, 3))
-    with pytest.raises(TypeError, match="'weights' is torch.float32"):
+    with pytest.raises(TypeError, match=r"'weights' is torch\.float32"):
         weights = torch.ones(3, 4, 12, dtype=torch.float32)
         PointMapProblem.from_dense(poses, points, obs, vis, weights=weights)
     with pytest.raises(ValueError, match="'points'"):

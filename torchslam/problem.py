@@ -237,6 +237,22 @@ class PointMapProblem(nn.Module):
                 f"got {tuple(observations.shape)}"
             )
         B, m, n, _ = observations.shape
+        for name, t, size in (("poses", poses, m), ("points", points, n)):
+            if not isinstance(t, Tensor) or t.dim() < 2 or t.shape[1] != size:
+                got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+                raise ValueError(
+                    f"{fn}: argument '{name}' must have {size} rows to match 'observations' "
+                    f"(B, m, n, 3) = {tuple(observations.shape)}, got {got}"
+                )
+        if weights is not None and (
+            not isinstance(weights, Tensor)
+            or tuple(weights.shape) not in ((B, m, n), (B, m, n, 3, 3))
+        ):
+            got = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
+            raise ValueError(
+                f"{fn}: argument 'weights' must have shape (B, m, n) = ({B}, {m}, {n}) for scalar "
+                f"weights or (B, m, n, 3, 3) for information matrices, got {got}"
+            )
         visibility = _mask(fn, "visibility", visibility, (B, m, n), observations.device, False)
         flat = visibility.reshape(B, m * n)
         counts = flat.sum(-1)
