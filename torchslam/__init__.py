@@ -8,11 +8,15 @@ float64 by default.
 from torchslam import (
     alignment,
     data,
+    icp,
     initialization,
+    io,
     jacobians,
     losses,
     manifold,
     metrics,
+    posegraph,
+    tracks,
 )
 from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
@@ -36,14 +40,18 @@ __all__ = [
     "alignment",
     "convert",
     "data",
+    "icp",
     "initialization",
+    "io",
     "jacobians",
     "losses",
     "manifold",
     "metrics",
+    "posegraph",
     "se3",
     "so3",
     "solve",
     "solve_tensors",
+    "tracks",
     "validation",
 ]
