@@ -27,7 +27,6 @@ Usage: python experiments/bunny_pairwise.py [--data DIR] [--order a,b,c,...]
 from __future__ import annotations
 
 import argparse
-import itertools
 import os
 import sys
 import time
@@ -36,7 +35,7 @@ from pathlib import Path
 
 import torch
 
-from torchslam import icp
+from torchslam import icp, register
 from torchslam.io.ply import read_ply_points
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, stack
 
@@ -64,48 +63,8 @@ REFERENCE_SCAN = "bun000"
 
 
 def default_stages() -> tuple[icp.Stage, ...]:
-    """Coarse-to-fine schedule in metres (the bunny is about 0.15 m across).
-
-    Point-to-plane at every level: from starts 30–60° off it converges in a few iterations,
-    where point-to-point creeps along the surface (few of 128 starts arrive in 8 iterations).
-    """
-    return (
-        icp.Stage(
-            0.010,
-            icp.ICPConfig(
-                method="point_to_plane",
-                max_iterations=8,
-                max_distance=0.05,
-                min_distance=0.010,
-                trim_fraction=0.9,
-                relative_tolerance=1e-3,
-            ),
-            keep=8,
-        ),
-        icp.Stage(
-            0.005,
-            icp.ICPConfig(
-                method="point_to_plane",
-                max_iterations=20,
-                max_distance=0.02,
-                min_distance=0.005,
-                trim_fraction=0.9,
-                relative_tolerance=1e-4,
-            ),
-            keep=1,
-        ),
-        icp.Stage(
-            0.002,
-            icp.ICPConfig(
-                method="point_to_plane",
-                max_iterations=40,
-                max_distance=0.01,
-                min_distance=0.002,
-                trim_fraction=0.9,
-                relative_tolerance=1e-5,
-            ),
-        ),
-    )
+    """Coarse-to-fine schedule in metres: 10, 5, 2 mm (``torchslam.register.default_stages``)."""
+    return register.default_stages(0.002)
 
 
 @dataclass
@@ -139,18 +98,10 @@ def run(
     start = time.perf_counter()
     raw = {n: read_ply_points(data / f"{n}.ply") for n in names}
     load_seconds = time.perf_counter() - start
-    rotations = icp.rotations_uniform(hypotheses)
-    relative, pair_results, pair_seconds = [], [], []
-    for target_name, source_name in itertools.pairwise(names):
-        tic = time.perf_counter()
-        source, target = raw[source_name], raw[target_name]
-        initial = icp.initial_guesses(source, target, rotations)
-        best, _ = icp.register_coarse_to_fine(source, target, initial, stages)
-        relative.append(best.transform)
-        pair_results.append(best)
-        pair_seconds.append(time.perf_counter() - tic)
-    relative_t = torch.stack(relative)
-    chained = icp.chain_poses(relative_t)  # into the frame of names[0]
+    config = register.RegisterConfig(hypotheses=hypotheses, stages=stages)
+    chain = register.register_chain([raw[n] for n in names], config)
+    relative_t, chained = chain.relative, chain.poses  # chained: into the frame of names[0]
+    pair_results, pair_seconds = chain.pair_results, chain.pair_seconds
     reference_index = list(names).index(REFERENCE_SCAN) if REFERENCE_SCAN in names else 0
     poses = relative_to_first(chained, reference_index)
     finest = stages[-1].voxel_size

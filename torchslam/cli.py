@@ -1,7 +1,8 @@
 """The ``torchslam`` command: a thin argparse front end over the library.
 
 Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure),
-``bench`` (the solver benchmark) and ``posegraph`` (optimize a g2o pose graph). Bad input (a
+``bench`` (the solver benchmark), ``posegraph`` (optimize a g2o pose graph) and ``register``
+(multiview registration of range scans). Bad input (a
 missing file, a malformed file, an impossible option value) gives a one-line message on stderr
 and exit status 2 — never a traceback.
 """
@@ -112,6 +113,16 @@ def _parser() -> argparse.ArgumentParser:
     posegraph.add_argument(
         "--threads", type=_positive_int, default=1, help="torch CPU threads (default 1)"
     )
+    register = sub.add_parser(
+        "register",
+        help="register range scans (PLY) by pairwise ICP + joint ICP-SLAM",
+        description="Multiview registration: pairwise ICP along the given scan order, chained "
+        "poses, point tracks, then the joint ICP-SLAM least-squares solve (robust), "
+        "re-associated a few rounds. Writes poses.txt, merged.ply and registration.png.",
+    )
+    from torchslam.register import add_arguments as add_register_arguments
+
+    add_register_arguments(register)
     return parser
 
 
@@ -155,6 +166,10 @@ def main(argv: list[str] | None = None) -> int:
                     threads=args.threads,
                 )
             )
+        elif args.command == "register":
+            from torchslam.register import run as run_register
+
+            return run_register(args)
     except (ValueError, TypeError, OSError) as error:
         print(f"torchslam {args.command}: error: {error}", file=sys.stderr)
         return 2

@@ -111,8 +111,9 @@ def _batched_cholesky_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
     (x is then zero). Never raises on an indefinite matrix."""
     L, info = torch.linalg.cholesky_ex(A)
     ok = info == 0
-    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
-    L = torch.where(ok[..., None, None], L, eye)
+    if not bool(ok.all()):  # rare: swap in I so the batched solve stays finite
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+        L = torch.where(ok[..., None, None], L, eye)
     x = torch.cholesky_solve(b[..., None], L)[..., 0]
     return torch.where(ok[..., None], x, torch.zeros_like(x)), ok
 
@@ -174,10 +175,13 @@ def solve_schur_structured(
         )
         .reshape(B, m, n)
     )
-    F = monomials(lin.points) / v_d[..., None]  # (B, n, 10)
-    AF = (A.transpose(1, 2)[..., None] * F[:, :, None, :]).reshape(B, n, m * 10)
-    C = torch.bmm(A, AF).reshape(B, m, m, 10)
-    S = -blocks_from_monomials(C)  # (B, m, m, 6, 6)
+    F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2)  # (B, 10, n)
+    # (A diag(f/v))_f stacked as (B, 10·m, n) — contiguous as broadcast produces it — times Aᵀ.
+    AF = A.new_empty(B, 10, m, n)  # explicit layout: a broadcast result may come out strided
+    torch.mul(A[:, None], F[:, :, None, :], out=AF)
+    AF = AF.view(B, 10 * m, n)
+    C = torch.bmm(AF, A.transpose(1, 2)).reshape(B, 10, m, m)
+    S = -blocks_from_monomials(C.permute(0, 2, 3, 1))  # (B, m, m, 6, 6)
     idx = torch.arange(m, device=S.device)
     S[:, idx, idx] += U
     S = S.transpose(2, 3).reshape(B, 6 * m, 6 * m)
