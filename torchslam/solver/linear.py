@@ -175,11 +175,10 @@ def solve_schur_structured(
         )
         .reshape(B, m, n)
     )
-    F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2)  # (B, 10, n)
-    # (A diag(f/v))_f stacked as (B, 10·m, n) — contiguous as broadcast produces it — times Aᵀ.
-    AF = A.new_empty(B, 10, m, n)  # explicit layout: a broadcast result may come out strided
-    torch.mul(A[:, None], F[:, :, None, :], out=AF)
-    AF = AF.view(B, 10 * m, n)
+    # (B, 10, n), contiguous so that the broadcast product below comes out contiguous too.
+    F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
+    # (A diag(f/v))_f for the 10 monomials f, stacked as (B, 10·m, n), times Aᵀ.
+    AF = (A[:, None] * F[:, :, None, :]).view(B, 10 * m, n)
     C = torch.bmm(AF, A.transpose(1, 2)).reshape(B, 10, m, m)
     S = -blocks_from_monomials(C.permute(0, 2, 3, 1))  # (B, m, m, 6, 6)
     idx = torch.arange(m, device=S.device)
