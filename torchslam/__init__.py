@@ -22,13 +22,22 @@ from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.problem import PointMapData, PointMapProblem
-from torchslam.solver import SolveResult, SolverConfig, Status, solve, solve_tensors
+from torchslam.solver import (
+    ImplicitConfig,
+    SolveResult,
+    SolverConfig,
+    Status,
+    solve,
+    solve_differentiable,
+    solve_tensors,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "CauchyLoss",
     "HuberLoss",
+    "ImplicitConfig",
     "PointMapData",
     "PointMapProblem",
     "SolveResult",
@@ -51,6 +60,7 @@ __all__ = [
     "se3",
     "so3",
     "solve",
+    "solve_differentiable",
     "solve_tensors",
     "tracks",
     "validation",

@@ -10,12 +10,15 @@ loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Fou
   with autograd on: linearize → Schur solve (:mod:`.linear`) → retract, every iteration
   recorded. The damping λ, ν and the accept/reject and stopping decisions are taken on
   detached values, so they are constants of the graph. Memory grows with the iterations.
-- ``"truncated"``: the same, but the graph covers only the last ``truncate_steps`` iterations
-  of each problem: the solve first runs under ``torch.no_grad`` (keeping a snapshot of the
-  iterate after each iteration), then the last k iterations of each problem are re-run from
-  their snapshot with autograd on. The iterate at the start of that window is a constant, so
-  the initial guess receives a gradient only where k covers all iterations (then the result
-  equals ``"unrolled"``).
+- ``"truncated"``: the same, but the graph covers only the last k = ``truncate_steps``
+  accepted iterations of each problem: the solve first runs under ``torch.no_grad`` (keeping a
+  snapshot of the iterate after each iteration), then each problem is re-run with autograd on
+  from the snapshot before its last k accepted steps (rejected steps, which leave the iterate
+  unchanged, are re-run too but do not count). The iterate at the start of that window is a
+  constant, so the initial guess receives a gradient only where k covers every accepted step
+  (then the result equals ``"unrolled"``). k = 1 differentiates one damped Gauss-Newton step
+  near the solution, roughly the ``hessian="gauss_newton"`` implicit gradient; the gradient
+  approaches the implicit one as k grows.
 - ``"implicit"``: the solve runs under ``torch.no_grad`` (:func:`torchslam.solve_tensors`);
   the solution x* = (ξ*, X*) then enters a ``torch.autograd.Function`` whose backward applies
   the implicit function theorem to the optimality condition
@@ -129,7 +132,8 @@ def solve_differentiable(
             (e.g. a ``HuberLoss`` tensor scale) may require grad.
         config: solver options; default :class:`SolverConfig()`.
         backward: "implicit" (default), "unrolled", "truncated" or "none".
-        truncate_steps: k ≥ 1, iterations of each problem that "truncated" differentiates.
+        truncate_steps: k ≥ 1, accepted iterations of each problem that "truncated"
+            differentiates.
         implicit: options of the "implicit" backward; default :class:`ImplicitConfig()`.
 
     Returns:
@@ -142,7 +146,7 @@ def solve_differentiable(
     _checks.check_same_kind(
         fn, pose_tangent=pose_tangent, points=points, observations=data.observations
     )
-    B, E = data.pose_index.shape
+    B = data.pose_index.shape[0]
     if tuple(pose_tangent.shape) != (B, data.num_poses, 6) or tuple(points.shape) != (
         B,
         data.num_points,
@@ -160,6 +164,13 @@ def solve_differentiable(
     if truncate_steps < 1:
         raise ValueError(f"{fn}: 'truncate_steps' must be ≥ 1, got {truncate_steps}")
     config = config or SolverConfig()
+    if backward in ("unrolled", "truncated") and config.linear_solver == "dense":
+        # solve_dense writes its blocks through views made before the first write, which
+        # autograd refuses; the Schur path (the default) is differentiable.
+        raise ValueError(
+            f"{fn}: backward={backward!r} needs linear_solver='schur', got 'dense' "
+            "(use the Schur solver or backward='implicit')"
+        )
     implicit = implicit or ImplicitConfig()
 
     if backward == "none":
@@ -204,6 +215,8 @@ class _State:
     iterations: Tensor
     cost: Tensor
     lin: object
+    # Accepted iterations so far per problem, long (B,).
+    accepted: Tensor
 
 
 def _gradient_norm(lin) -> Tensor:
@@ -238,6 +251,7 @@ def _initial_state(
         iterations=torch.zeros(B, dtype=torch.long, device=xi.device),
         cost=cost,
         lin=lin,
+        accepted=torch.zeros(B, dtype=torch.long, device=xi.device),
     )
 
 
@@ -257,25 +271,23 @@ def _iterate(
     data: PointMapData,
     factor: Tensor | None,
     config: SolverConfig,
-    max_steps: int | None,
     on_step: Callable[[_State], None] | None,
 ) -> _State:
     """Iterations of :func:`torchslam.solve_tensors`, differentiable w.r.t. the iterate and the
     data: the same linearize → solve_step → retract → accept path, with every decision (λ, ν,
-    accept, stop) taken on detached values. Stops when no problem is running, after
-    ``max_steps`` iterations, or per problem at ``config.max_iterations``."""
+    accept, stop) taken on detached values. Stops when no problem is running (a problem
+    stops by the solver's tests or at ``config.max_iterations``)."""
     algorithm = config.algorithm
     structured = config.linear_solver == "schur"
     structure = None
     running = int(Status.RUNNING)
     xi, X, lam, nu = state.xi, state.X, state.lam, state.nu
     status, iterations, cost, lin = state.status, state.iterations, state.cost, state.lin
-    step = 0
-    while max_steps is None or step < max_steps:
+    accepted_total = state.accepted
+    while True:
         active = (status == running) & (iterations < config.max_iterations)
         if not bool(active.any()):
             break
-        step += 1
         iterations = iterations + active.long()
         if algorithm == "gradient_descent":
             dp = -lam[:, None, None] * lin.pose_gradient
@@ -317,11 +329,17 @@ def _iterate(
                 lam = torch.where(active & ~accepted, lam * 0.5, lam)
             decrease = old_cost - new_cost
             f_conv = accepted & (decrease.abs() <= config.function_tolerance * old_cost)
+            if algorithm == "levenberg_marquardt":
+                # As the solver: stop when even the model predicts a negligible decrease.
+                f_conv = f_conv | (
+                    active & ok & (predicted.abs() <= config.function_tolerance * old_cost)
+                )
             p_conv = (
                 active
                 & ok
                 & (step_norm <= config.parameter_tolerance * (x_norm + config.parameter_tolerance))
             )
+        accepted_total = accepted_total + accepted.long()
         xi = torch.where(accepted[:, None, None], xi_new, xi)
         X = torch.where(accepted[:, None, None], X_new, X)
         cost = torch.where(accepted, lin_new.cost, cost)
@@ -352,7 +370,7 @@ def _iterate(
                 int(Status.NON_FINITE),
                 status,
             )
-        state = _State(xi, X, lam, nu, status, iterations, cost, lin)
+        state = _State(xi, X, lam, nu, status, iterations, cost, lin, accepted_total)
         if on_step is not None:
             on_step(state)
     return state
@@ -385,15 +403,15 @@ def _run(
 
     if on_step is not None:
         on_step(state)
-    state = _iterate(state, data, factor, config, None, record)
+    state = _iterate(state, data, factor, config, record)
     return _finish(state, config), costs, lambdas
 
 
 def _run_truncated(
     pose_tangent: Tensor, points: Tensor, data: PointMapData, config: SolverConfig, k: int
 ) -> tuple[_State, list[Tensor], list[Tensor]]:
-    """Solve under no_grad keeping a snapshot per iteration, then re-run the last k
-    iterations of each problem from its snapshot with autograd on."""
+    """Solve under no_grad keeping a snapshot per iteration, then re-run each problem with
+    autograd on from the snapshot before its last k accepted iterations."""
     snapshots: list[_State] = []
 
     def snapshot(s: _State) -> None:
@@ -401,9 +419,13 @@ def _run_truncated(
 
     with torch.no_grad():
         final, costs, lambdas = _run(pose_tangent, points, data, config, snapshot)
-    # Problem b ran K_b iterations; its window starts after max(K_b − k, 0) of them, i.e. at
-    # snapshot s_b (problem b is active in every global iteration before K_b).
-    begin = (final.iterations - k).clamp_min(0)
+    # Snapshot s holds every problem after s global iterations (a problem is active in every
+    # global iteration before it stops). Problem b's window starts at the last snapshot that
+    # still has k accepted iterations of b ahead, or at 0 when b accepted fewer than k.
+    accepted = torch.stack([s.accepted for s in snapshots])  # (S, B)
+    ahead = accepted <= (final.accepted - k)[None, :]
+    index = torch.arange(accepted.shape[0], device=accepted.device)[:, None]
+    begin = torch.where(ahead, index, 0).amax(0)
     b = torch.arange(begin.numel(), device=begin.device)
 
     def pick(name: str) -> Tensor:
@@ -423,8 +445,9 @@ def _run_truncated(
         iterations=pick("iterations"),
         cost=lin.cost,
         lin=lin,
+        accepted=pick("accepted"),
     )
-    state = _iterate(state, data, factor, config, k, None)
+    state = _iterate(state, data, factor, config, None)
     return _finish(state, config), costs, lambdas
 
 
@@ -503,6 +526,7 @@ class _ImplicitSolution(torch.autograd.Function):
         return xi_star.clone(), X_star.clone()
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_xi, grad_X):
         spec: _ImplicitSpec = ctx.spec
         xi_star, X_star, xi0, X0, *theta = ctx.saved_tensors
@@ -608,7 +632,9 @@ def _solve_hessian(
 
     def hessian_product(p: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
         Hp = torch.autograd.grad(_dot(g, p).sum(), delta, retain_graph=True, allow_unused=True)
-        return tuple(torch.zeros_like(d) if h is None else h.detach() for h, d in zip(Hp, delta))
+        return tuple(
+            torch.zeros_like(d) if h is None else h.detach() for h, d in zip(Hp, delta, strict=True)
+        )
 
     def axpy(a: Tensor, x: tuple[Tensor, Tensor], y: tuple[Tensor, Tensor]):
         return (y[0] + a[:, None, None] * x[0], y[1] + a[:, None, None] * x[1])
