@@ -24,8 +24,8 @@ from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.problem import PointMapData, PointMapProblem
 from torchslam.solver import (
     ImplicitConfig,
-    SolveResult,
     SolverConfig,
+    SolveResult,
     Status,
     solve,
     solve_differentiable,
