@@ -56,7 +56,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -71,11 +70,17 @@ from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import (
     StructuredLinearization,
     linearize,
-    model_decrease,
     whitening_factors,
 )
 from torchslam.solver.result import SolveResult, Status
-from torchslam.solver.solve import retract, solve_tensors
+from torchslam.solver.solve import (
+    _finish,
+    _gradient_norm,
+    _iterate,
+    _run,
+    _State,
+    solve_tensors,
+)
 
 __all__ = ["Backward", "ImplicitConfig", "solve_differentiable"]
 
@@ -201,210 +206,6 @@ def solve_differentiable(
 
 # ------------------------------------------------------------------------------------------
 # Unrolled and truncated: the solver loop with autograd on
-
-
-@dataclass
-class _State:
-    """The iterate of B problems and the solver's bookkeeping (see :mod:`.solve`)."""
-
-    xi: Tensor
-    X: Tensor
-    lam: Tensor
-    nu: Tensor
-    status: Tensor
-    iterations: Tensor
-    cost: Tensor
-    lin: object
-    # Accepted iterations so far per problem, long (B,).
-    accepted: Tensor
-
-
-def _gradient_norm(lin) -> Tensor:
-    return torch.maximum(
-        lin.pose_gradient.abs().flatten(1).amax(-1), lin.point_gradient.abs().flatten(1).amax(-1)
-    )
-
-
-def _initial_state(
-    xi: Tensor, X: Tensor, data: PointMapData, factor: Tensor | None, config: SolverConfig
-) -> _State:
-    B = xi.shape[0]
-    lam = xi.new_full((B,), config.initial_lambda)
-    if config.algorithm == "gauss_newton":
-        lam = torch.zeros_like(lam)
-    elif config.algorithm == "gradient_descent":
-        lam = torch.full_like(lam, config.step_size)
-    lin = linearize(xi, X, data, factor, config.jacobian, config.linear_solver == "schur")
-    cost = lin.cost
-    status = torch.zeros(B, dtype=torch.long, device=xi.device)
-    gradient_norm = _gradient_norm(lin).detach()
-    status = torch.where(
-        gradient_norm <= config.gradient_tolerance, int(Status.CONVERGED_GRADIENT), status
-    )
-    status = torch.where(torch.isfinite(cost.detach()), status, int(Status.NON_FINITE))
-    return _State(
-        xi=xi,
-        X=X,
-        lam=lam,
-        nu=torch.full_like(lam, 2.0),
-        status=status,
-        iterations=torch.zeros(B, dtype=torch.long, device=xi.device),
-        cost=cost,
-        lin=lin,
-        accepted=torch.zeros(B, dtype=torch.long, device=xi.device),
-    )
-
-
-def _select(mask: Tensor, new, old):
-    """Per-problem choice between two linearizations (mask (B,) → new); None if forms differ."""
-    if type(new) is not type(old):
-        return None
-    fields = {}
-    for name in type(new).__dataclass_fields__:
-        a, b = getattr(new, name), getattr(old, name)
-        fields[name] = torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
-    return type(new)(**fields)
-
-
-def _iterate(
-    state: _State,
-    data: PointMapData,
-    factor: Tensor | None,
-    config: SolverConfig,
-    on_step: Callable[[_State], None] | None,
-) -> _State:
-    """Iterations of :func:`torchslam.solve_tensors`, differentiable w.r.t. the iterate and the
-    data: the same linearize → solve_step → retract → accept path, with every decision (λ, ν,
-    accept, stop) taken on detached values. Stops when no problem is running (a problem
-    stops by the solver's tests or at ``config.max_iterations``)."""
-    algorithm = config.algorithm
-    structured = config.linear_solver == "schur"
-    structure = None
-    running = int(Status.RUNNING)
-    xi, X, lam, nu = state.xi, state.X, state.lam, state.nu
-    status, iterations, cost, lin = state.status, state.iterations, state.cost, state.lin
-    accepted_total = state.accepted
-    while True:
-        active = (status == running) & (iterations < config.max_iterations)
-        if not bool(active.any()):
-            break
-        iterations = iterations + active.long()
-        if algorithm == "gradient_descent":
-            dp = -lam[:, None, None] * lin.pose_gradient
-            dl = -lam[:, None, None] * lin.point_gradient
-            ok = torch.ones_like(active)
-        else:
-            if structure is None and not isinstance(lin, StructuredLinearization):
-                structure = linear.SchurStructure.build(data)
-            dp, dl, ok = linear.solve_step(
-                lin,
-                data,
-                structure,
-                lam,
-                config.damping,
-                config.linear_solver,
-                config.schur_chunk_size,
-            )
-        xi_new, X_new = retract(xi, X, dp, dl)
-        lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured)
-        with torch.no_grad():
-            # The decisions: constants of the graph.
-            step_norm = torch.sqrt(dp.square().flatten(1).sum(-1) + dl.square().flatten(1).sum(-1))
-            x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
-            old_cost, new_cost = cost.detach(), lin_new.cost.detach()
-            finite = torch.isfinite(new_cost) & torch.isfinite(step_norm)
-            if algorithm == "levenberg_marquardt":
-                predicted = model_decrease(lin, data, dp, dl)
-                gain = (old_cost - new_cost) / predicted
-                accepted = active & ok & finite & (predicted > 0) & (gain > 0)
-                factor_up = torch.clamp(1 - (2 * gain - 1) ** 3, min=1 / 3)
-                lam = torch.where(accepted, (lam * factor_up).clamp_min(config.min_lambda), lam)
-                rejected = active & ~accepted
-                lam = torch.where(rejected, lam * nu, lam)
-                nu = torch.where(accepted, 2.0, torch.where(rejected, nu * 2, nu))
-            elif algorithm == "gauss_newton":
-                accepted = active & ok & finite
-            else:
-                accepted = active & finite & (new_cost < old_cost)
-                lam = torch.where(active & ~accepted, lam * 0.5, lam)
-            decrease = old_cost - new_cost
-            f_conv = accepted & (decrease.abs() <= config.function_tolerance * old_cost)
-            if algorithm == "levenberg_marquardt":
-                # As the solver: stop when even the model predicts a negligible decrease.
-                f_conv = f_conv | (
-                    active & ok & (predicted.abs() <= config.function_tolerance * old_cost)
-                )
-            p_conv = (
-                active
-                & ok
-                & (step_norm <= config.parameter_tolerance * (x_norm + config.parameter_tolerance))
-            )
-        accepted_total = accepted_total + accepted.long()
-        xi = torch.where(accepted[:, None, None], xi_new, xi)
-        X = torch.where(accepted[:, None, None], X_new, X)
-        cost = torch.where(accepted, lin_new.cost, cost)
-        lin = _select(accepted, lin_new, lin)
-        if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
-            lin = linearize(xi, X, data, factor, config.jacobian, structured)
-        with torch.no_grad():
-            g_conv = active & (_gradient_norm(lin) <= config.gradient_tolerance)
-            status = torch.where(active & f_conv, int(Status.CONVERGED_FUNCTION), status)
-            status = torch.where(
-                (status == running) & g_conv, int(Status.CONVERGED_GRADIENT), status
-            )
-            status = torch.where(
-                (status == running) & p_conv, int(Status.CONVERGED_PARAMETER), status
-            )
-            if algorithm == "gauss_newton":
-                status = torch.where(
-                    (status == running) & active & ~ok, int(Status.LINEAR_SOLVE_FAILED), status
-                )
-            if algorithm == "levenberg_marquardt":
-                status = torch.where(
-                    (status == running) & (lam > config.max_lambda),
-                    int(Status.DAMPING_LIMIT),
-                    status,
-                )
-            status = torch.where(
-                (status == running) & active & ~torch.isfinite(cost.detach()),
-                int(Status.NON_FINITE),
-                status,
-            )
-        state = _State(xi, X, lam, nu, status, iterations, cost, lin, accepted_total)
-        if on_step is not None:
-            on_step(state)
-    return state
-
-
-def _finish(state: _State, config: SolverConfig) -> _State:
-    """Problems still running have used up ``max_iterations``."""
-    stopped = (state.status == int(Status.RUNNING)) & (state.iterations >= config.max_iterations)
-    status = torch.where(stopped, int(Status.MAX_ITERATIONS), state.status)
-    return dataclasses.replace(state, status=status)
-
-
-def _run(
-    pose_tangent: Tensor,
-    points: Tensor,
-    data: PointMapData,
-    config: SolverConfig,
-    on_step: Callable[[_State], None] | None,
-) -> tuple[_State, list[Tensor], list[Tensor]]:
-    """The whole solve from the initial guess (with autograd as the caller has it)."""
-    factor = whitening_factors(data)
-    state = _initial_state(pose_tangent, points, data, factor, config)
-    costs, lambdas = [state.cost.detach().clone()], [state.lam.clone()]
-
-    def record(s: _State) -> None:
-        costs.append(s.cost.detach().clone())
-        lambdas.append(s.lam.clone())
-        if on_step is not None:
-            on_step(s)
-
-    if on_step is not None:
-        on_step(state)
-    state = _iterate(state, data, factor, config, record)
-    return _finish(state, config), costs, lambdas
 
 
 def _run_truncated(
