@@ -72,11 +72,11 @@ from torchslam.solver.linearize import (
     linearize,
     whitening_factors,
 )
-from torchslam.solver.result import SolveResult, Status
+from torchslam.solver.result import SolveResult
 from torchslam.solver.solve import (
     _finish,
-    _gradient_norm,
     _iterate,
+    _result,
     _run,
     _State,
     solve_tensors,
@@ -190,18 +190,7 @@ def solve_differentiable(
             state, costs, lambdas = _run_truncated(
                 pose_tangent, points, data, config, truncate_steps
             )
-    return SolveResult(
-        pose_tangent=state.xi,
-        points=state.X,
-        status=[Status(int(s)) for s in state.status.tolist()],
-        iterations=state.iterations,
-        initial_cost=costs[0],
-        final_cost=state.cost,
-        cost_history=torch.stack(costs, dim=1),
-        lambda_history=torch.stack(lambdas, dim=1),
-        gradient_norm=_gradient_norm(state.lin).detach(),
-        time_seconds=time.perf_counter() - start,
-    )
+    return _result(state, costs, lambdas, start)
 
 
 # ------------------------------------------------------------------------------------------

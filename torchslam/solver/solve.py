@@ -269,6 +269,22 @@ def _run(
     return _finish(state, config), costs, lambdas
 
 
+def _result(state: _State, costs: list[Tensor], lambdas: list[Tensor], start: float) -> SolveResult:
+    """The :class:`SolveResult` of a finished run (histories from :func:`_run`)."""
+    return SolveResult(
+        pose_tangent=state.xi,
+        points=state.X,
+        status=[Status(int(s)) for s in state.status.tolist()],
+        iterations=state.iterations,
+        initial_cost=costs[0],
+        final_cost=state.cost,
+        cost_history=torch.stack(costs, dim=1),
+        lambda_history=torch.stack(lambdas, dim=1),
+        gradient_norm=_gradient_norm(state.lin).detach(),
+        time_seconds=time.perf_counter() - start,
+    )
+
+
 def solve_tensors(
     pose_tangent: Tensor,
     points: Tensor,
@@ -320,18 +336,7 @@ def solve_tensors(
         state, costs, lambdas = _run(
             pose_tangent.detach().clone(), points.detach().clone(), data, config, report, False
         )
-    return SolveResult(
-        pose_tangent=state.xi,
-        points=state.X,
-        status=[Status(int(s)) for s in state.status.tolist()],
-        iterations=state.iterations,
-        initial_cost=costs[0],
-        final_cost=state.cost,
-        cost_history=torch.stack(costs, dim=1),
-        lambda_history=torch.stack(lambdas, dim=1),
-        gradient_norm=_gradient_norm(state.lin),
-        time_seconds=time.perf_counter() - start,
-    )
+    return _result(state, costs, lambdas, start)
 
 
 def solve(
