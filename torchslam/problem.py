@@ -24,7 +24,8 @@ is initialized at the identity). Any poses or points can be held fixed.
 
 Ill-posed parts are never dropped silently. When the problem is built:
 - a point with no valid observation is held fixed (it does not enter the cost);
-- a free pose with fewer than 3 valid observations is held fixed (6 unknowns need ≥ 3 points);
+- a free pose with fewer than 3 valid observations is held fixed (6 unknowns need ≥ 3 points),
+  unless the extra terms give it ≥ 6 residual rows (e.g. a relative-pose constraint);
 each with a ``UserWarning`` naming the problem and the index, also listed in ``diagnostics``.
 """
 
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -39,6 +41,7 @@ from torch import Tensor, nn
 
 from torchslam import _checks, jacobians
 from torchslam.lie import se3
+from torchslam.terms import Term, terms_cost
 
 __all__ = ["PointMapData", "PointMapProblem"]
 
@@ -68,6 +71,8 @@ class PointMapData:
     fixed_points: Tensor
     # Robust kernel ρ applied to s_e = r_eᵀ Ω_e r_e, or None for ρ(s) = s.
     loss: object | None
+    # Extra pose terms of the objective (:mod:`torchslam.terms`), bound to batch B.
+    terms: tuple[Term, ...] = ()
 
     @property
     def num_poses(self) -> int:
@@ -137,6 +142,10 @@ class PointMapProblem(nn.Module):
         fixed_points: points held fixed, bool (B, n); default none.
         loss: robust kernel from :mod:`torchslam.losses` (e.g. ``HuberLoss(0.05)``), applied
             per observation to s = rᵀΩr; default none (least squares).
+        terms: extra terms of the objective on the poses (:mod:`torchslam.terms`: relative-pose
+            constraints, pose priors, user terms), each shared by the batch or batched (B, …).
+
+    The objective is ½ Σ_e ρ(r_eᵀ Ω_e r_e) + Σ_terms ½ Σ_k ρ_t(s_k).
 
     All float tensors must share one dtype (float64 recommended) and device.
     """
@@ -154,6 +163,7 @@ class PointMapProblem(nn.Module):
         fixed_poses: Tensor | None = None,
         fixed_points: Tensor | None = None,
         loss: object | None = None,
+        terms: Sequence[Term] = (),
     ) -> None:
         super().__init__()
         fn = "PointMapProblem"
@@ -180,6 +190,7 @@ class PointMapProblem(nn.Module):
             fixed_poses[:, 0] = True
         fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False)
         scalar_weights, information = _split_weights(fn, weights, B, E, observations)
+        terms = _bind_terms(fn, terms, B, m, observations)
 
         _checks.check_pose_matrix(fn, "poses", poses)
         _checks.check_finite(fn, "points", points)
@@ -187,7 +198,14 @@ class PointMapProblem(nn.Module):
         if _checks.value_checks_active():
             _check_observations(fn, observations, valid, pose_index, point_index, m, n)
             fixed_poses, fixed_points = _hold_ill_posed_fixed(
-                fn, valid, pose_index, point_index, fixed_poses, fixed_points, self.diagnostics
+                fn,
+                valid,
+                pose_index,
+                point_index,
+                fixed_poses,
+                fixed_points,
+                self.diagnostics,
+                _term_rows(terms, B, m, observations),
             )
 
         # Padding slots may hold any index (e.g. -1); point them at row 0 so that the gathers
@@ -206,6 +224,7 @@ class PointMapProblem(nn.Module):
             fixed_poses=fixed_poses,
             fixed_points=fixed_points,
             loss=loss,
+            terms=terms,
         )
 
     # ----------------------------------------------------------------------------------------
@@ -345,7 +364,7 @@ class PointMapProblem(nn.Module):
         return self.data.whiten(self.raw_residuals())
 
     def cost(self) -> Tensor:
-        """Per-problem cost ½ Σ_e ρ(r_eᵀ Ω_e r_e), shape (B,)."""
+        """Per-problem cost ½ Σ_e ρ(r_eᵀ Ω_e r_e) (+ the terms' costs), shape (B,)."""
         return cost(self.pose_tangent, self.points, self.data)
 
     def forward(self) -> Tensor:
@@ -441,12 +460,18 @@ def raw_residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> T
     return raw_residuals_from_poses(se3._exp(pose_tangent), points, data)
 
 
-def cost(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
-    """½ Σ_e ρ(r_eᵀ Ω_e r_e) per problem, (B,)."""
-    s = data.squared_norms(raw_residuals(pose_tangent, points, data))
+def cost_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
+    """½ Σ_e ρ(r_eᵀ Ω_e r_e) + the terms' costs per problem, (B,), from pose matrices
+    T (B, m, 4, 4)."""
+    s = data.squared_norms(raw_residuals_from_poses(T, points, data))
     if data.loss is not None:
         s = torch.where(data.valid, data.loss(s)[0], torch.zeros_like(s))
-    return 0.5 * s.sum(-1)
+    return 0.5 * s.sum(-1) + terms_cost(data.terms, T)
+
+
+def cost(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
+    """½ Σ_e ρ(r_eᵀ Ω_e r_e) + the terms' costs per problem, (B,)."""
+    return cost_from_poses(se3._exp(pose_tangent), points, data)
 
 
 def jacobian_blocks(
@@ -559,6 +584,38 @@ def _check_observations(
         )
 
 
+def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) -> tuple[Term, ...]:
+    if isinstance(terms, Term) or not isinstance(terms, (list, tuple)):
+        raise TypeError(
+            f"{fn}: argument 'terms' must be a list or tuple of torchslam.Term objects, "
+            f"got {type(terms).__name__}"
+        )
+    for k, term in enumerate(terms):
+        if not isinstance(term, Term):
+            raise TypeError(
+                f"{fn}: terms[{k}] must be a torchslam.Term (e.g. RelativePoseTerm), "
+                f"got {type(term).__name__}"
+            )
+    return tuple(term.bind(B, m, observations) for term in terms)
+
+
+def _term_rows(terms: tuple[Term, ...], B: int, m: int, observations: Tensor) -> Tensor:
+    """Residual rows the terms give each pose, long (B, m) (a pose with ≥ 6 is constrained
+    by them even without 3 point observations)."""
+    rows = torch.zeros(B * m, dtype=torch.long, device=observations.device)
+    batch = torch.arange(B, device=observations.device)[:, None, None]
+    for term in terms:
+        if term.num_instances == 0:
+            continue
+        d = term.residual(
+            se3.identity(1, term.arity, dtype=observations.dtype, device=observations.device),
+            **{k: v[:1, :1] for k, v in term.constants.items()},
+        ).shape[-1]
+        count = (d * term.valid[..., None]).expand_as(term.pose_index)
+        rows.index_add_(0, (batch * m + term.pose_index).reshape(-1), count.reshape(-1))
+    return rows.reshape(B, m)
+
+
 def _hold_ill_posed_fixed(
     fn: str,
     valid: Tensor,
@@ -567,6 +624,7 @@ def _hold_ill_posed_fixed(
     fixed_poses: Tensor,
     fixed_points: Tensor,
     diagnostics: list[str],
+    term_rows: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     B, m = fixed_poses.shape
     n = fixed_points.shape[1]
@@ -581,6 +639,8 @@ def _hold_ill_posed_fixed(
         0, (batch_offset * n + point_index.clamp(0, n - 1)).reshape(-1), ones.reshape(-1)
     )
     weak_poses = (pose_counts.reshape(B, m) < 3) & ~fixed_poses
+    if term_rows is not None:
+        weak_poses = weak_poses & (term_rows < 6)
     unseen_points = (point_counts.reshape(B, n) == 0) & ~fixed_points
     for b, i in weak_poses.nonzero().tolist():
         diagnostics.append(

@@ -33,6 +33,7 @@ from torchslam.solver.linearize import (
     StructuredLinearization,
     blocks_from_monomials,
     monomials,
+    term_pair_keys,
 )
 
 __all__ = ["SchurStructure", "damp", "solve_dense", "solve_schur", "solve_step"]
@@ -104,6 +105,18 @@ def damp(blocks: Tensor, lam: Tensor, damping: str) -> Tensor:
     else:
         D = torch.diagonal(blocks, dim1=-2, dim2=-1).clamp(1e-6, 1e32)[..., None] * eye
     return blocks + lam[:, None, None, None] * D
+
+
+def term_pair_matrix(lin, data: PointMapData) -> Tensor | None:
+    """The pose terms' off-diagonal blocks as a dense (B, 6m, 6m) matrix, or None."""
+    if lin.terms is None or lin.terms.pair_blocks.shape[1] == 0:
+        return None
+    B, m = data.pose_index.shape[0], data.num_poses
+    P = lin.terms.pair_blocks
+    dense = P.new_zeros(B * m * m, 6, 6).index_add_(
+        0, term_pair_keys(data).reshape(-1), P.reshape(-1, 6, 6)
+    )
+    return dense.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
 
 
 def _batched_cholesky_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
@@ -184,6 +197,9 @@ def solve_schur_structured(
     idx = torch.arange(m, device=S.device)
     S[:, idx, idx] += U
     S = S.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+    pairs = term_pair_matrix(lin, data)
+    if pairs is not None:
+        S = S + pairs
 
     # Right-hand side: −g_p + Σ_e (w_e / v_j) G_jᵀ g_lj.
     X_e = gather_points(lin.points, data)
@@ -252,6 +268,9 @@ def solve_schur(
     S_blocks = S.view(B, m, 6, m, 6)  # a view: adding U on the block diagonal edits S
     idx = torch.arange(m, device=S.device)
     S_blocks[:, idx, :, idx, :] += U.transpose(0, 1)
+    pairs = term_pair_matrix(lin, data)
+    if pairs is not None:
+        S = S + pairs
 
     # Right-hand side: −g_p + Σ_e Y_e g_l(j(e)).
     gl_e = lin.point_gradient.reshape(B * n, 3)[
@@ -306,6 +325,9 @@ def solve_dense(
     bidx = Hb[:, None, None, None].expand_as(rows)
     H.index_put_((bidx, rows, cols), lin.coupling, accumulate=True)
     H.index_put_((bidx, cols, rows), lin.coupling, accumulate=True)
+    pairs = term_pair_matrix(lin, data)
+    if pairs is not None:
+        H[:, : 6 * m, : 6 * m] += pairs
     g = torch.cat((lin.pose_gradient.reshape(B, 6 * m), lin.point_gradient.reshape(B, 3 * n)), -1)
     x, ok = _batched_cholesky_solve(H, -g)
     return x[:, : 6 * m].reshape(B, m, 6), x[:, 6 * m :].reshape(B, n, 3), ok

@@ -22,12 +22,21 @@ blocks factor as J_ξ = J_X · G_j with J_X = −R_i and G_j = [ −[X_j]× | I 
 so every block is a weighted sum of the 10 monomials (1, x, y, z, x², y², z², xy, xz, yz) of
 X_j. The Schur complement then needs no per-pair products at all (see :mod:`.linear`).
 
+**Pose terms** (:mod:`torchslam.terms`: relative poses, priors, user terms). Instance k of a
+term touches poses i_1 … i_a with whitened, robustified residual r̃_k and blocks J̃_k,a (d × 6);
+it adds J̃_aᵀr̃ to g_(i_a), J̃_aᵀJ̃_a to U_(i_a) (folded into ``pose_blocks`` and
+``pose_gradient`` of either form, so damping and Schur see the whole pose Hessian) and the
+off-diagonal products J̃_aᵀJ̃_b (a ≠ b) to block (i_a, i_b) of the reduced pose system, kept
+as :class:`TermLinearization` ``pair_blocks``; :mod:`.linear` adds them to S (dense) or to
+its sparse pattern.
+
 Fixed poses/points and padding contribute nothing; fixed variables get an identity block and
 a zero gradient, so their step is exactly zero.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -37,15 +46,35 @@ from torchslam import losses
 from torchslam.jacobians import analytic_blocks
 from torchslam.lie import se3, so3
 from torchslam.problem import PointMapData, gather_points, jacobian_blocks, per_observation
+from torchslam.terms import Term, term_jacobians, term_poses, term_whitening, terms_cost
 
 __all__ = [
     "BlockLinearization",
     "StructuredLinearization",
+    "TermLinearization",
     "cost_at",
     "linearize",
+    "linearize_terms",
     "monomials",
+    "term_pair_keys",
     "whitening_factors",
 ]
+
+
+@dataclass
+class TermLinearization:
+    """The pose terms' share of the normal equations (B problems, m poses)."""
+
+    # ½ Σ ρ(s) of all terms, (B,).
+    cost: Tensor
+    # Σ J̃ᵀr̃ per pose, (B, m, 6), and Σ J̃_aᵀJ̃_a per pose, (B, m, 6, 6).
+    gradient: Tensor
+    diagonal: Tensor
+    # J̃_aᵀJ̃_b for a ≠ b of every instance of every term, (B, P, 6, 6), in the order of
+    # :func:`term_pair_keys`.
+    pair_blocks: Tensor
+    # Whitened, robustified blocks J̃ of each term, (B, K_t, d_t, a_t, 6) (model decrease).
+    jacobians: tuple[Tensor, ...]
 
 
 @dataclass
@@ -67,6 +96,8 @@ class BlockLinearization:
     jacobian: Tensor
     # Pose-point blocks W_e, (B, E, 6, 3).
     coupling: Tensor
+    # The pose terms (already folded into cost, pose_gradient, pose_blocks), or None.
+    terms: TermLinearization | None = None
 
 
 @dataclass
@@ -91,6 +122,8 @@ class StructuredLinearization:
     # Masks: pose / point of each observation is free, (B, E).
     free_pose: Tensor
     free_point: Tensor
+    # The pose terms (already folded into cost, pose_gradient, pose_blocks), or None.
+    terms: TermLinearization | None = None
 
 
 def whitening_factors(data: PointMapData) -> Tensor | None:
@@ -167,6 +200,20 @@ def linearize(
     The structured form is used when ``structured`` and the problem allows it (scalar weights,
     analytic Jacobians, no curvature-corrected robust observation); otherwise the block form.
     """
+    lin = _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structured)
+    if not data.terms:
+        return lin
+    terms = linearize_terms(se3._exp(pose_tangent), data, jacobian_mode)
+    return dataclasses.replace(
+        lin,
+        cost=lin.cost + terms.cost,
+        pose_gradient=lin.pose_gradient + terms.gradient,
+        pose_blocks=lin.pose_blocks + terms.diagonal,
+        terms=terms,
+    )
+
+
+def _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structured):
     r, T_e, X_e = _residuals(pose_tangent, points, data)
     free_pose = ~torch.gather(data.fixed_poses, 1, data.pose_index)
     free_point = ~torch.gather(data.fixed_points, 1, data.point_index)
@@ -273,6 +320,99 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
     )
 
 
+def term_pair_keys(data: PointMapData) -> Tensor:
+    """Block (b, i_a, i_b) of each of the ``pair_blocks`` as (b·m + i_a)·m + i_b, long (B, P)."""
+    m = data.num_poses
+    B = data.pose_index.shape[0]
+    batch = torch.arange(B, device=data.pose_index.device)[:, None]
+    keys = []
+    for term in data.terms:
+        for a in range(term.arity):
+            for b in range(term.arity):
+                if a != b:
+                    keys.append((batch * m + term.pose_index[..., a]) * m + term.pose_index[..., b])
+    if not keys:
+        return data.pose_index.new_zeros(B, 0)
+    return torch.cat(keys, dim=1)
+
+
+def linearize_terms(poses: Tensor, data: PointMapData, jacobian_mode: str) -> TermLinearization:
+    """The pose terms' normal-equation blocks at poses T (B, m, 4, 4) (module doc)."""
+    B, m = poses.shape[:2]
+    cost = poses.new_zeros(B)
+    gradient = poses.new_zeros(B * m, 6)
+    diagonal = poses.new_zeros(B * m, 6, 6)
+    pairs, jacobians = [], []
+    batch = torch.arange(B, device=poses.device)[:, None, None]
+    for term in data.terms:
+        r, J = term_jacobians(term, term_poses(term, poses), jacobian_mode)
+        slots = batch * m + term.pose_index  # (B, K, a)
+        free = ~data.fixed_poses.reshape(-1)[slots]
+        rw, Jw = _whitened_term(term, r, J * free[:, :, None, :, None])
+        term_cost, rw, Jw = _robustified(term, rw, Jw)
+        cost = cost + term_cost
+        jacobians.append(Jw)
+        a = term.arity
+        K = r.shape[1]
+        Jt = Jw.transpose(-3, -2)  # (B, K, a, d, 6)
+        g = (Jt.transpose(-1, -2) @ rw[:, :, None, :, None])[..., 0]  # (B, K, a, 6)
+        gradient.index_add_(0, slots.reshape(-1), g.reshape(-1, 6))
+        H = Jt[:, :, :, None].transpose(-1, -2) @ Jt[:, :, None, :]  # (B, K, a, a, 6, 6)
+        idx = torch.arange(a, device=poses.device)
+        diagonal.index_add_(0, slots.reshape(-1), H[:, :, idx, idx].reshape(-1, 6, 6))
+        for i in range(a):
+            for j in range(a):
+                if i != j:
+                    pairs.append(H[:, :, i, j].reshape(B, K, 6, 6))
+    pair_blocks = torch.cat(pairs, dim=1) if pairs else poses.new_zeros(B, 0, 6, 6)
+    return TermLinearization(
+        cost=cost,
+        gradient=gradient.reshape(B, m, 6),
+        diagonal=diagonal.reshape(B, m, 6, 6),
+        pair_blocks=pair_blocks,
+        jacobians=tuple(jacobians),
+    )
+
+
+def _whitened_term(term: Term, r: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:
+    """U r and U J (J (B, K, d, a, 6)), zero on padding."""
+    factor = term_whitening(term)
+    if factor is None:
+        rw, Jw = r, J
+    elif factor.dim() == 2:
+        rw, Jw = factor[..., None] * r, factor[..., None, None, None] * J
+    else:
+        rw = (factor @ r[..., None])[..., 0]
+        Jw = (factor @ J.flatten(-2)).reshape(J.shape)
+    valid = term.valid
+    return (
+        torch.where(valid[..., None], rw, torch.zeros_like(rw)),
+        torch.where(valid[..., None, None, None], Jw, torch.zeros_like(Jw)),
+    )
+
+
+def _robustified(term: Term, rw: Tensor, Jw: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(cost (B,), r̃, J̃): ½ Σ ρ(|U r|²) and Ceres' robust correction of r and J."""
+    s = (rw * rw).sum(-1)
+    if term.loss is None:
+        return 0.5 * s.sum(-1), rw, Jw
+    rho, rho1, rho2 = term.loss(s)
+    cost = 0.5 * torch.where(term.valid, rho, torch.zeros_like(rho)).sum(-1)
+    scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
+    shape = Jw.shape
+    Jf = Jw.flatten(-2)  # (B, K, d, a·6)
+    Jf = torch.sqrt(rho1)[..., None, None] * (
+        Jf - alpha_over_s[..., None, None] * rw[..., :, None] * (rw[..., None, :] @ Jf)
+    )
+    rw = scale[..., None] * rw
+    valid = term.valid
+    return (
+        cost,
+        torch.where(valid[..., None], rw, torch.zeros_like(rw)),
+        torch.where(valid[..., None, None], Jf, torch.zeros_like(Jf)).reshape(shape),
+    )
+
+
 def cost_at(
     pose_tangent: Tensor, points: Tensor, data: PointMapData, factor: Tensor | None
 ) -> Tensor:
@@ -282,7 +422,8 @@ def cost_at(
     s = (rw * rw).sum(dim=(-1, -2))
     if data.loss is not None:
         s = data.loss(s)[0]
-    return 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
+    points_cost = 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
+    return points_cost + terms_cost(data.terms, se3._exp(pose_tangent))
 
 
 def model_decrease(
@@ -312,4 +453,11 @@ def model_decrease(
     else:
         Jd = (lin.jacobian @ torch.cat((dp_e, dl_e), -1)[..., None])[..., 0]
         quad = (Jd * Jd).sum((-1, -2))
+    if lin.terms is not None:
+        B, m = dp.shape[:2]
+        batch = torch.arange(B, device=dp.device)[:, None, None]
+        for term, J in zip(data.terms, lin.terms.jacobians, strict=True):
+            d_term = dp.reshape(B * m, 6)[(batch * m + term.pose_index).reshape(-1)]
+            Jd = (J.flatten(-2) @ d_term.reshape(*term.pose_index.shape[:2], -1, 1))[..., 0]
+            quad = quad + (Jd * Jd).sum((-1, -2))
     return -(g_dot + 0.5 * quad)

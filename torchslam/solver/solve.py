@@ -112,13 +112,19 @@ def _initial_state(
 
 
 def _select(mask: Tensor, new, old):
-    """Per-problem choice between two linearizations (mask (B,) → new); None if forms differ."""
-    if type(new) is not type(old):
+    """Per-problem choice between two linearizations (mask (B,) → new); None if forms differ.
+
+    Recurses into nested dataclasses (the pose terms) and tuples of tensors."""
+    if isinstance(new, Tensor) and isinstance(old, Tensor):
+        return torch.where(mask.reshape(-1, *([1] * (new.dim() - 1))), new, old)
+    if new is None or type(new) is not type(old):
         return None
+    if isinstance(new, tuple):
+        return tuple(_select(mask, a, b) for a, b in zip(new, old, strict=True))
     fields = {}
     for name in type(new).__dataclass_fields__:
         a, b = getattr(new, name), getattr(old, name)
-        fields[name] = torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+        fields[name] = _select(mask, a, b)
     return type(new)(**fields)
 
 

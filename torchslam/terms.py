@@ -1,0 +1,433 @@
+"""Pluggable residual terms on poses: relative-pose (between) terms, pose priors, user terms.
+
+The objective of a :class:`torchslam.PointMapProblem` is a sum of terms: the ICP-SLAM point
+observations (built in; the Schur complement eliminates their points) plus any number of
+:class:`Term` objects passed as ``terms=[...]``. A term is a small object holding K instances
+of one residual r_k (d entries) over a poses each (its *arity*), with
+
+    cost_k = ½ ρ(|U_k r_k|²),    U_kᵀU_k = Ω_k (information) or w_k I (scalar weight),
+
+ρ an optional robust kernel of :mod:`torchslam.losses` (identity by default). Its poses are
+the problem's variables T_i0 (world → frame i, :class:`torchslam.PointMapProblem`) in the same
+convention everywhere: ξ = (ω, v) rotation first, right perturbation T ← T·Exp(δ).
+
+Writing a term. Subclass :class:`Term` and implement :meth:`Term.residual`, batched over any
+leading dims::
+
+    class PointToPlane(Term):        # r = nᵀ(T X − p): world point X, plane (p, n) in frame i
+        def __init__(self, pose_index, X, p, n, weight=None):
+            super().__init__(pose_index[:, None], dict(X=X, p=p, n=n), weight=weight)
+
+        def residual(self, poses, X, p, n):
+            T = poses[..., 0, :, :]
+            TX = (T[..., :3, :3] @ X[..., None])[..., 0] + T[..., :3, 3]
+            return ((TX - p) * n).sum(-1, keepdim=True)
+
+Its Jacobian blocks ∂r/∂δ_a (d × 6 per pose) then come from ``torch.func.jacrev`` of
+r(T_a·Exp(δ_a)) at δ = 0, vmapped over the instances; a term may also override
+:meth:`Term.jacobians` with analytic blocks (the built-in terms do, and the tests check them
+against ``jacrev`` and central differences).
+
+Built-in terms (derivations in their docstrings):
+
+- :class:`RelativePoseTerm`: r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹) with Z_ij ≈ T_i0 T_j0⁻¹, the
+  pose of frame j in frame i (it maps frame-j coordinates to frame i: what ICP of scan j onto
+  scan i returns, and the odometry T_(i,i+1) of the chain T_0i = T_01 T_12 …).
+- :class:`PosePriorTerm`: r = Log(Z⁻¹ · T) with Z ≈ T.
+
+Pose graphs of :mod:`torchslam.posegraph` use g2o's body → world vertices T_i^g = T_i0⁻¹ and
+measurements Z_ij^g ≈ (T_i^g)⁻¹ T_j^g = T_i0 T_j0⁻¹: the same Z_ij, so a g2o edge (i, j) is a
+:class:`RelativePoseTerm` on the inverted vertices with the same measurement and information.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+
+from torchslam import _checks
+from torchslam.lie import se3
+
+__all__ = [
+    "PosePriorTerm",
+    "RelativePoseTerm",
+    "Term",
+    "term_cost",
+    "term_jacobians",
+    "term_poses",
+    "term_squared_norms",
+    "term_whitening",
+    "terms_cost",
+]
+
+
+class Term:
+    """K instances of a residual over ``arity`` poses each, optionally weighted and robust.
+
+    Args:
+        pose_index: poses each instance touches, integer (K, a) or (B, K, a): a = arity.
+        constants: the instances' data, a mapping name → tensor (K, …) or (B, K, …); they are
+            passed to :meth:`residual` by name and may require grad (the differentiable solve
+            carries gradients to them).
+        weight: scalar weights w_k ≥ 0, (K,) or (B, K); or
+        information: information matrices Ω_k, symmetric positive definite, (K, d, d) or
+            (B, K, d, d). Default: unit weights. Not both.
+        loss: robust kernel of :mod:`torchslam.losses` applied to s_k = r_kᵀ Ω_k r_k.
+        valid: False for padding instances, bool (K,) or (B, K); default all True.
+
+    Without a batch dim the term is shared by every problem of the batch. All floating
+    tensors must share the problem's dtype and device.
+    """
+
+    def __init__(
+        self,
+        pose_index: Tensor,
+        constants: Mapping[str, Tensor] | None = None,
+        *,
+        weight: Tensor | None = None,
+        information: Tensor | None = None,
+        loss: object | None = None,
+        valid: Tensor | None = None,
+    ) -> None:
+        fn = type(self).__name__
+        if not isinstance(pose_index, Tensor):
+            raise TypeError(
+                f"{fn}: argument 'pose_index' must be a torch.Tensor, "
+                f"got {type(pose_index).__name__}"
+            )
+        if pose_index.dtype.is_floating_point or pose_index.dtype in (torch.bool, torch.complex64):
+            raise TypeError(
+                f"{fn}: argument 'pose_index' must be an integer tensor, got {pose_index.dtype}"
+            )
+        if pose_index.dim() not in (2, 3) or pose_index.shape[-1] < 1:
+            raise ValueError(
+                f"{fn}: argument 'pose_index' must have shape (K, a) or (B, K, a) with a ≥ 1 "
+                f"poses per instance, got {tuple(pose_index.shape)}"
+            )
+        if weight is not None and information is not None:
+            raise ValueError(f"{fn}: give 'weight' or 'information', not both")
+        self.pose_index = pose_index.long()
+        lead = tuple(pose_index.shape[:-1])
+        self.constants = dict(constants or {})
+        for name, value in self.constants.items():
+            _checks.check_tensor(fn, name, value)
+            if tuple(value.shape[: len(lead)]) != lead:
+                raise ValueError(
+                    f"{fn}: constant '{name}' must have leading shape {lead} (those of "
+                    f"'pose_index' without the arity), got {tuple(value.shape)}"
+                )
+        if weight is not None:
+            _checks.check_tensor(fn, "weight", weight)
+            if tuple(weight.shape) != lead:
+                raise ValueError(
+                    f"{fn}: argument 'weight' must have shape {lead}, got {tuple(weight.shape)}"
+                )
+            _checks.check_finite(fn, "weight", weight)
+            if _checks.value_checks_active() and bool((weight < 0).any()):
+                raise ValueError(f"{fn}: argument 'weight' must be ≥ 0, got a negative entry")
+        if information is not None:
+            _checks.check_tensor(fn, "information", information)
+            if information.dim() != len(lead) + 2 or tuple(information.shape[: len(lead)]) != lead:
+                raise ValueError(
+                    f"{fn}: argument 'information' must have shape {lead} + (d, d), "
+                    f"got {tuple(information.shape)}"
+                )
+        if valid is None:
+            valid = torch.ones(lead, dtype=torch.bool, device=pose_index.device)
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool or tuple(valid.shape) != lead:
+            got = (tuple(valid.shape), valid.dtype) if isinstance(valid, Tensor) else type(valid)
+            raise ValueError(
+                f"{fn}: argument 'valid' must be a bool tensor of shape {lead}, got {got}"
+            )
+        self.weight = weight
+        self.information = information
+        self.loss = loss
+        self.valid = valid
+
+    # ----------------------------------------------------------------------------------------
+    # What a subclass writes
+
+    def residual(self, poses: Tensor, **constants: Tensor) -> Tensor:
+        """Residuals of the instances: poses (..., a, 4, 4) and constants (..., …) → (..., d).
+
+        ``poses[..., a, :, :]`` is the a-th pose the instance touches (T_i0, world → frame i).
+        Must be written batched over the leading dims (it is also called under ``vmap``).
+        """
+        raise NotImplementedError(f"{type(self).__name__} must implement residual()")
+
+    def jacobians(self, poses: Tensor, **constants: Tensor) -> tuple[Tensor, Tensor] | None:
+        """Optional analytic blocks: (r (..., d), J (..., d, a, 6)), J[..., :, a, :] = ∂r/∂δ_a
+        for T_a ← T_a·Exp(δ_a), columns (ω, v). The default (None) means ``jacrev``."""
+        return None
+
+    # ----------------------------------------------------------------------------------------
+    # Sizes and plumbing
+
+    @property
+    def arity(self) -> int:
+        """Poses per instance a."""
+        return self.pose_index.shape[-1]
+
+    @property
+    def num_instances(self) -> int:
+        """Instances K."""
+        return self.pose_index.shape[-2]
+
+    def tensors(self) -> dict[str, Tensor]:
+        """The floating tensors the cost depends on (constants, weight, information), by name."""
+        out = {f"constants.{k}": v for k, v in self.constants.items() if v.is_floating_point()}
+        for name in ("weight", "information"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        return out
+
+    def replace_tensors(self, tensors: Mapping[str, Tensor]) -> Term:
+        """A shallow copy with some of :meth:`tensors` replaced (same names)."""
+        new = copy.copy(self)
+        new.constants = dict(self.constants)
+        for name, value in tensors.items():
+            if name.startswith("constants."):
+                new.constants[name[len("constants.") :]] = value
+            else:
+                setattr(new, name, value)
+        return new
+
+    def bind(self, batch_size: int, num_poses: int, like: Tensor) -> Term:
+        """A copy with every tensor expanded to batch ``batch_size``, checked against a problem
+        of ``num_poses`` poses whose floating tensors are like ``like`` (dtype, device)."""
+        fn = type(self).__name__
+        B = batch_size
+        batched = self.pose_index.dim() == 3
+        if batched and self.pose_index.shape[0] not in (1, B):
+            raise ValueError(
+                f"{fn}: 'pose_index' has batch size {self.pose_index.shape[0]}, the problem has "
+                f"B = {B} (give (K, a), (1, K, a) or (B, K, a))"
+            )
+        for name, value in self.tensors().items():
+            if value.dtype != like.dtype or value.device != like.device:
+                raise TypeError(
+                    f"{fn}: '{name}' must have the problem's dtype and device ({like.dtype}, "
+                    f"{like.device}), got ({value.dtype}, {value.device})"
+                )
+
+        def expand(x: Tensor) -> Tensor:
+            x = x if batched else x[None]
+            return x.expand(B, *x.shape[1:])
+
+        new = copy.copy(self)
+        new.pose_index = expand(self.pose_index.to(like.device))
+        new.valid = expand(self.valid.to(like.device))
+        new.constants = {k: expand(v) for k, v in self.constants.items()}
+        new.weight = None if self.weight is None else expand(self.weight)
+        new.information = None if self.information is None else expand(self.information)
+        bad = new.valid & ((new.pose_index < 0) | (new.pose_index >= num_poses)).any(-1)
+        if bool(bad.any()):
+            b, k = (int(i) for i in bad.nonzero()[0])
+            raise ValueError(
+                f"{fn}: 'pose_index' out of range [0, {num_poses}): problem {b}, instance {k} "
+                f"has {new.pose_index[b, k].tolist()}"
+            )
+        new.pose_index = torch.where(new.valid[..., None], new.pose_index, 0)
+        if new.num_instances > 0:
+            r = new.residual(
+                se3.identity(1, new.arity, dtype=like.dtype, device=like.device),
+                **{k: v[:1, :1] for k, v in new.constants.items()},
+            )
+            if r.dim() != 3 or tuple(r.shape[:2]) != (1, 1):
+                raise ValueError(
+                    f"{fn}.residual must return shape (..., d) for poses (..., a, 4, 4); for "
+                    f"one instance (1, 1, a, 4, 4) it returned {tuple(r.shape)}"
+                )
+            d = r.shape[-1]
+            if new.information is not None and tuple(new.information.shape[-2:]) != (d, d):
+                raise ValueError(
+                    f"{fn}: argument 'information' must be ({d}, {d}) per instance for its "
+                    f"{d}-dim residual, got {tuple(new.information.shape[-2:])}"
+                )
+        return new
+
+    def __repr__(self) -> str:
+        weighting = "information" if self.information is not None else "weight"
+        if self.information is None and self.weight is None:
+            weighting = "unit"
+        return (
+            f"{type(self).__name__}(instances={self.num_instances}, arity={self.arity}, "
+            f"weighting={weighting}, loss={self.loss!r})"
+        )
+
+
+def term_poses(term: Term, poses: Tensor) -> Tensor:
+    """The poses each instance touches: poses (B, m, 4, 4) → (B, K, a, 4, 4) (bound term)."""
+    B, m = poses.shape[:2]
+    flat = torch.arange(B, device=poses.device)[:, None, None] * m + term.pose_index
+    return poses.reshape(B * m, 4, 4)[flat.reshape(-1)].reshape(*flat.shape, 4, 4)
+
+
+def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[Tensor, Tensor]:
+    """Residuals (B, K, d) and blocks (B, K, d, a, 6) of a bound term at its poses (B, K, a, 4, 4).
+
+    ``mode="analytic"`` uses :meth:`Term.jacobians` when the term has them, else ``jacrev``;
+    ``mode="jacrev"`` always differentiates :meth:`Term.residual` with ``torch.func.jacrev``.
+    """
+    if mode == "analytic":
+        out = term.jacobians(poses, **term.constants)
+        if out is not None:
+            return out
+    r = term.residual(poses, **term.constants)
+    B, K, a = poses.shape[:3]
+    if B * K == 0:
+        return r, r.new_zeros(B, K, r.shape[-1], a, 6)
+
+    def perturbed(delta: Tensor, T: Tensor, constants: dict[str, Tensor]) -> Tensor:
+        return term.residual(T @ se3._exp(delta), **constants)
+
+    flat_constants = {k: v.reshape(B * K, *v.shape[2:]) for k, v in term.constants.items()}
+    J = torch.func.vmap(torch.func.jacrev(perturbed))(
+        poses.new_zeros(B * K, a, 6), poses.reshape(B * K, a, 4, 4), flat_constants
+    )
+    return r, J.reshape(B, K, *J.shape[1:])
+
+
+class RelativePoseTerm(Term):
+    """Relative-pose (between) terms r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹), ξ = (ω, v).
+
+    T_i = T_i0 maps world to frame i, so T_i T_j⁻¹ is the pose of frame j in frame i and the
+    residual is zero when it equals the measurement Z_ij (ICP of scan j onto scan i, odometry,
+    a loop closure). Equivalently, with g2o's body → world vertices T^g = T⁻¹,
+    r = Log(Z_ij⁻¹ (T_i^g)⁻¹ T_j^g), the residual of :mod:`torchslam.posegraph.between`.
+
+    Jacobians (right perturbations; Jr the right Jacobian of SE(3), Exp(r + d) ≈
+    Exp(r) Exp(Jr(r) d), hence Log(Exp(r) Exp(u)) = r + Jr⁻¹(r) u + O(|u|²)). With
+    E = Z⁻¹ T_i T_j⁻¹ and T Exp(δ) T⁻¹ = Exp(Ad(T) δ):
+
+    - T_i ← T_i Exp(δ_i): E ← Z⁻¹ T_i Exp(δ_i) T_j⁻¹ = E · Exp(Ad(T_j) δ_i), so
+      ∂r/∂δ_i = Jr⁻¹(r) · Ad(T_j);
+    - T_j ← T_j Exp(δ_j): T_j⁻¹ ← Exp(−δ_j) T_j⁻¹, E ← E · Exp(−Ad(T_j) δ_j), so
+      ∂r/∂δ_j = −Jr⁻¹(r) · Ad(T_j).
+
+    Args:
+        pose_index: (i, j) of each term, integer (K, 2) or (B, K, 2).
+        measurements: Z_ij ≈ T_i0 T_j0⁻¹, (K, 4, 4) or (B, K, 4, 4).
+        information: Ω_ij in (ω, v) order, (…, K, 6, 6); or ``weight`` (…, K); default 1.
+        loss, valid: as :class:`Term`.
+    """
+
+    def __init__(
+        self,
+        pose_index: Tensor,
+        measurements: Tensor,
+        *,
+        information: Tensor | None = None,
+        weight: Tensor | None = None,
+        loss: object | None = None,
+        valid: Tensor | None = None,
+    ) -> None:
+        fn = "RelativePoseTerm"
+        _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
+        _checks.check_pose_matrix(fn, "measurements", measurements)
+        if isinstance(pose_index, Tensor) and pose_index.shape[-1:] != (2,):
+            raise ValueError(
+                f"{fn}: argument 'pose_index' must have shape (K, 2) or (B, K, 2), "
+                f"got {tuple(pose_index.shape)}"
+            )
+        super().__init__(
+            pose_index,
+            {"measurements": measurements},
+            weight=weight,
+            information=information,
+            loss=loss,
+            valid=valid,
+        )
+
+    def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
+        T_i, T_j = poses[..., 0, :, :], poses[..., 1, :, :]
+        return se3._log(se3._inverse(measurements) @ T_i @ se3._inverse(T_j))
+
+    def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
+        r = self.residual(poses, measurements)
+        J_i = se3._jl_inv(-r) @ se3._adjoint(poses[..., 1, :, :])  # Jr⁻¹(r) = Jl⁻¹(−r)
+        return r, torch.stack((J_i, -J_i), dim=-2)
+
+
+class PosePriorTerm(Term):
+    """Pose priors r = Log(Z⁻¹ · T_i), zero when T_i0 = Z; ∂r/∂δ = Jr⁻¹(r) (T ← T·Exp(δ)).
+
+    Args:
+        pose_index: the pose of each prior, integer (K,) or (B, K).
+        measurements: prior poses Z ≈ T_i0, (K, 4, 4) or (B, K, 4, 4).
+        information: Ω in (ω, v) order, (…, K, 6, 6); or ``weight`` (…, K); default 1.
+        loss, valid: as :class:`Term`.
+    """
+
+    def __init__(
+        self,
+        pose_index: Tensor,
+        measurements: Tensor,
+        *,
+        information: Tensor | None = None,
+        weight: Tensor | None = None,
+        loss: object | None = None,
+        valid: Tensor | None = None,
+    ) -> None:
+        fn = "PosePriorTerm"
+        _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
+        _checks.check_pose_matrix(fn, "measurements", measurements)
+        if not isinstance(pose_index, Tensor) or pose_index.dim() not in (1, 2):
+            got = tuple(pose_index.shape) if isinstance(pose_index, Tensor) else type(pose_index)
+            raise ValueError(
+                f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), got {got}"
+            )
+        super().__init__(
+            pose_index[..., None],
+            {"measurements": measurements},
+            weight=weight,
+            information=information,
+            loss=loss,
+            valid=valid,
+        )
+
+    def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
+        return se3._log(se3._inverse(measurements) @ poses[..., 0, :, :])
+
+    def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
+        r = self.residual(poses, measurements)
+        return r, se3._jl_inv(-r)[..., None, :]
+
+
+def term_whitening(term: Term) -> Tensor | None:
+    """U with UᵀU = Ω per instance (B, K, d, d), √w (B, K), or None for unit weights."""
+    if term.information is not None:
+        return torch.linalg.cholesky(term.information).transpose(-1, -2)
+    if term.weight is not None:
+        return torch.sqrt(term.weight)
+    return None
+
+
+def term_squared_norms(term: Term, r: Tensor) -> Tensor:
+    """s_k = r_kᵀ Ω_k r_k (B, K), 0 on padding; no square root (exact gradients at w = 0)."""
+    if term.information is not None:
+        s = (r[..., None, :] @ term.information @ r[..., None])[..., 0, 0]
+    else:
+        s = (r * r).sum(-1)
+        if term.weight is not None:
+            s = term.weight * s
+    return torch.where(term.valid, s, torch.zeros_like(s))
+
+
+def term_cost(term: Term, poses: Tensor) -> Tensor:
+    """½ Σ_k ρ(s_k) of a bound term at all poses (B, m, 4, 4) → (B,). Differentiable."""
+    s = term_squared_norms(term, term.residual(term_poses(term, poses), **term.constants))
+    if term.loss is not None:
+        s = torch.where(term.valid, term.loss(s)[0], torch.zeros_like(s))
+    return 0.5 * s.sum(-1)
+
+
+def terms_cost(terms: tuple[Term, ...], poses: Tensor) -> Tensor:
+    """Σ over bound terms of :func:`term_cost`, (B,) (zeros without terms)."""
+    total = poses.new_zeros(poses.shape[0])
+    for term in terms:
+        total = total + term_cost(term, poses)
+    return total
