@@ -11,6 +11,8 @@ _ALGORITHMS = ("levenberg_marquardt", "gauss_newton", "gradient_descent")
 _DAMPINGS = ("marquardt", "levenberg")
 _JACOBIANS = ("analytic", "jacrev")
 _LINEAR_SOLVERS = ("schur", "dense")
+_REDUCED_SOLVERS = ("auto", "dense", "sparse")
+_ORDERINGS = ("mmd", "colamd", "natural")
 
 
 @dataclass(frozen=True)
@@ -41,6 +43,16 @@ class SolverConfig:
     # Linear solver: "schur" (eliminate points, Cholesky of the 6m × 6m pose system) or
     # "dense" (the full (6m + 3n)² system; small problems and cross-checks only).
     linear_solver: Literal["schur", "dense"] = "schur"
+    # Factorization of the reduced 6m × 6m pose system of "schur": "dense" (batched
+    # Cholesky, any device, differentiable), "sparse" (SciPy SuperLU with a fill-reducing
+    # ordering, :mod:`torchslam.solver.sparse`; for thousands of poses with local
+    # co-visibility and relative-pose terms) or "auto": sparse when 6m > dense_max_variables
+    # and the observation pairs sharing a point number at most m²/4 (a sparse pattern).
+    reduced_solver: Literal["auto", "dense", "sparse"] = "auto"
+    # Largest reduced system 6m that "auto" factors densely.
+    dense_max_variables: int = 1200
+    # Fill-reducing ordering of the pose-block graph for "sparse".
+    ordering: Literal["mmd", "colamd", "natural"] = "mmd"
     # Maximum number of iterations (linearizations) per solve.
     max_iterations: int = 100
     # Stop when |ΔF| ≤ function_tolerance · F after an accepted step.
@@ -59,6 +71,13 @@ class SolverConfig:
         _choice("damping", self.damping, _DAMPINGS)
         _choice("jacobian", self.jacobian, _JACOBIANS)
         _choice("linear_solver", self.linear_solver, _LINEAR_SOLVERS)
+        _choice("reduced_solver", self.reduced_solver, _REDUCED_SOLVERS)
+        _choice("ordering", self.ordering, _ORDERINGS)
+        if not isinstance(self.dense_max_variables, int) or self.dense_max_variables < 0:
+            raise ValueError(
+                "SolverConfig: 'dense_max_variables' must be an int ≥ 0, "
+                f"got {self.dense_max_variables!r}"
+            )
         if not isinstance(self.max_iterations, int) or self.max_iterations < 0:
             raise ValueError(
                 f"SolverConfig: 'max_iterations' must be an int ≥ 0, got {self.max_iterations!r}"

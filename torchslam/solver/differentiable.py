@@ -33,8 +33,9 @@ loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Fou
 
   one linear solve per backward, whatever the number of iterations (memory O(E + m² + n)).
   ``H`` is solved with the forward pass's Schur machinery: the Gauss-Newton matrix JᵀJ at x*
-  is factored by :func:`torchslam.solver.linear.solve_step` (λ = 0, the right-hand side in
-  place of the gradient); with ``ImplicitConfig(hessian="exact")`` (default) that solve
+  is factored once by :func:`torchslam.solver.linear.factorize` (λ = 0; dense Cholesky or
+  the sparse factorization, as the forward solve) and solved for the right-hand side; with
+  ``ImplicitConfig(hessian="exact")`` (default) that solve
   preconditions conjugate gradients on the exact Hessian (Hessian-vector products by double
   backward), which the unrolled gradient converges to — JᵀJ alone drops the Σ r ∇²r and ρ''
   terms, an O(residual) error. Fixed variables keep their given values: the initial guess
@@ -64,7 +65,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
-from torchslam.problem import PointMapData, cost, raw_residuals_from_poses
+from torchslam.problem import PointMapData, cost, cost_from_poses
 from torchslam.solver import linear
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import (
@@ -80,6 +81,7 @@ from torchslam.solver.solve import (
     _run,
     _State,
     solve_tensors,
+    sparse_schur,
 )
 
 __all__ = ["Backward", "ImplicitConfig", "solve_differentiable"]
@@ -176,6 +178,15 @@ def solve_differentiable(
             f"{fn}: backward={backward!r} needs linear_solver='schur', got 'dense' "
             "(use the Schur solver or backward='implicit')"
         )
+    if backward in ("unrolled", "truncated"):
+        if config.reduced_solver == "sparse":
+            # SciPy's factorization is outside autograd; the batched Cholesky is not.
+            raise ValueError(
+                f"{fn}: backward={backward!r} needs reduced_solver='dense' or 'auto', got "
+                "'sparse' (the sparse factorization is not differentiable; use "
+                "backward='implicit', which works with it)"
+            )
+        config = dataclasses.replace(config, reduced_solver="dense")
     implicit = implicit or ImplicitConfig()
 
     if backward == "none":
@@ -258,32 +269,43 @@ def _loss_tensors(loss: object) -> list[str]:
 
 @dataclass(frozen=True)
 class _DataSpec:
-    """How to rebuild a PointMapData from its differentiable tensors θ (a flat list)."""
+    """How to rebuild a PointMapData from its differentiable tensors θ (a flat list): the
+    observation fields, the loss's tensor attributes and the pose terms' tensors."""
 
     data: PointMapData
     fields: tuple[str, ...]
     loss_attributes: tuple[str, ...]
+    term_tensors: tuple[tuple[str, ...], ...]
 
     @staticmethod
     def of(data: PointMapData) -> _DataSpec:
         fields = tuple(
             f for f in ("observations", "weights", "information") if getattr(data, f) is not None
         )
-        return _DataSpec(data, fields, tuple(_loss_tensors(data.loss)))
+        terms = tuple(tuple(term.tensors()) for term in data.terms)
+        return _DataSpec(data, fields, tuple(_loss_tensors(data.loss)), terms)
 
     def tensors(self) -> list[Tensor]:
-        return [getattr(self.data, f) for f in self.fields] + [
-            getattr(self.data.loss, a) for a in self.loss_attributes
-        ]
+        out = [getattr(self.data, f) for f in self.fields]
+        out += [getattr(self.data.loss, a) for a in self.loss_attributes]
+        for term, names in zip(self.data.terms, self.term_tensors, strict=True):
+            values = term.tensors()
+            out += [values[name] for name in names]
+        return out
 
     def rebuild(self, theta: list[Tensor]) -> PointMapData:
-        values = dict(zip(self.fields, theta[: len(self.fields)], strict=True))
+        it = iter(theta)
+        values = {f: next(it) for f in self.fields}
         loss = self.data.loss
         if self.loss_attributes:
             loss = copy.copy(loss)
-            for name, value in zip(self.loss_attributes, theta[len(self.fields) :], strict=True):
-                setattr(loss, name, value)
-        return dataclasses.replace(self.data, loss=loss, **values)
+            for name in self.loss_attributes:
+                setattr(loss, name, next(it))
+        terms = tuple(
+            term.replace_tensors({name: next(it) for name in names})
+            for term, names in zip(self.data.terms, self.term_tensors, strict=True)
+        )
+        return dataclasses.replace(self.data, loss=loss, terms=terms, **values)
 
 
 @dataclass(frozen=True)
@@ -291,14 +313,6 @@ class _ImplicitSpec:
     data: _DataSpec
     config: SolverConfig
     implicit: ImplicitConfig
-
-
-def _cost_from_poses(T: Tensor, X: Tensor, data: PointMapData) -> Tensor:
-    """½ Σ_e ρ(r_eᵀ Ω_e r_e) per problem (B,) from pose matrices T (B, m, 4, 4)."""
-    s = data.squared_norms(raw_residuals_from_poses(T, X, data))
-    if data.loss is not None:
-        s = torch.where(data.valid, data.loss(s)[0], torch.zeros_like(s))
-    return 0.5 * s.sum(-1)
 
 
 def _dot(a: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor]) -> Tensor:
@@ -339,7 +353,7 @@ class _ImplicitSolution(torch.autograd.Function):
                 se3._exp(xi_star) @ se3._exp(dp),
             )
             X = torch.where(data0.fixed_points[..., None], X0_leaf, X_star + dl)
-            F = _cost_from_poses(T, X, data).sum()
+            F = cost_from_poses(T, X, data).sum()
             g = torch.autograd.grad(F, (dp, dl), create_graph=True)
 
             # v = (dξ*/dδ)ᵀ ḡ with dξ*/dδ = jr_inv(ξ*) = jl_inv(−ξ*) (SE3Tangent.plus_jacobian).
@@ -385,32 +399,38 @@ def _solve_hessian(
     """w = H⁻¹ v per problem; H the Hessian of F in the chart at δ = 0 (module doc).
 
     The Gauss-Newton matrix JᵀJ at x* is solved with the forward pass's Schur machinery
-    (:func:`torchslam.solver.linear.solve_step` with λ = 0 and −v in place of the gradient, so
-    its step −(JᵀJ)⁻¹(−v) is the solution). For the exact Hessian that solve preconditions
-    conjugate gradients, batched with per-problem step sizes.
+    (:func:`torchslam.solver.linear.factorize` with λ = 0, factored once, then solved with −v
+    in place of the gradient, so its step −(JᵀJ)⁻¹(−v) is the solution). For the exact
+    Hessian that solve preconditions conjugate gradients, batched with per-problem step sizes.
     """
     config, options = spec.config, spec.implicit
     with torch.no_grad():
+        # Factor JᵀJ at x* once (dense or sparse, as the forward solve); every conjugate-
+        # gradient iteration then reuses the factorization (two triangular solves).
         factor = whitening_factors(data)
         structured = config.linear_solver == "schur"
         lin = linearize(xi_star, X_star, data, factor, config.jacobian, structured)
+        sparse = sparse_schur(data, config)
         structure = None
-        if not isinstance(lin, StructuredLinearization) and config.linear_solver == "schur":
+        if not isinstance(lin, StructuredLinearization) and structured and sparse is None:
             structure = linear.SchurStructure.build(data)
         lam = xi_star.new_zeros(xi_star.shape[0])
+        gauss_newton = linear.factorize(
+            lin,
+            data,
+            structure,
+            lam,
+            config.damping,
+            config.linear_solver,
+            config.schur_chunk_size,
+            sparse,
+        )
 
     def precondition(r: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
         with torch.no_grad():
-            rhs = dataclasses.replace(lin, pose_gradient=-r[0], point_gradient=-r[1])
-            zp, zl, ok = linear.solve_step(
-                rhs,
-                data,
-                structure,
-                lam,
-                config.damping,
-                config.linear_solver,
-                config.schur_chunk_size,
-            )
+            # The step −(JᵀJ)⁻¹ g for g = −r is (JᵀJ)⁻¹ r.
+            zp, zl = gauss_newton.solve(-r[0], -r[1])
+            ok = gauss_newton.ok
             # A singular JᵀJ (e.g. a point whose weights are all 0): no preconditioning there.
             return (
                 torch.where(ok[:, None, None], zp, r[0]),

@@ -1,5 +1,12 @@
 """Linear solve of the damped normal equations, by Schur complement on the points or densely.
 
+Every path first *factors* the damped system (:func:`factorize` → :class:`Factorization`)
+and then solves it for a gradient; the solver calls both once per iteration
+(:func:`solve_step`), the implicit backward of :mod:`.differentiable` factors once and solves
+for many right-hand sides. The reduced pose system S is factored densely (batched Cholesky)
+or, for large sparse ones, by :mod:`.sparse` (SuperLU with a fill-reducing ordering); the
+pose terms of :mod:`torchslam.terms` add their off-diagonal blocks to it.
+
 The system of one problem, with poses p and points l,
 
     [ U + λD_U    W       ] [δp]     [g_p]
@@ -22,6 +29,7 @@ never crashes the batch.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -35,8 +43,20 @@ from torchslam.solver.linearize import (
     monomials,
     term_pair_keys,
 )
+from torchslam.solver.sparse import BlockPattern
 
-__all__ = ["SchurStructure", "damp", "solve_dense", "solve_schur", "solve_step"]
+__all__ = [
+    "Factorization",
+    "SchurStructure",
+    "SparseSchur",
+    "choose_reduced_solver",
+    "damp",
+    "factorize",
+    "solve_dense",
+    "solve_schur",
+    "solve_schur_structured",
+    "solve_step",
+]
 
 
 @dataclass
@@ -51,6 +71,10 @@ class SchurStructure:
     # 1 for a self-pair (a = b), 2 otherwise is not stored: self-pairs get weight ½ so that
     # A + Aᵀ counts them once.
     self_pair: Tensor
+    # Both observations in the same pose (a diagonal block), bool.
+    same_pose: Tensor
+    # Flat index b·n + j of the shared point.
+    point: Tensor
 
     @staticmethod
     def build(data: PointMapData) -> SchurStructure:
@@ -89,6 +113,8 @@ class SchurStructure:
             second=second,
             block=(b * m + i_a) * m + i_b,
             self_pair=first == second,
+            same_pose=i_a == i_b,
+            point=data.flat_point_index.reshape(-1)[first],
         )
 
     @property
@@ -107,6 +133,48 @@ def damp(blocks: Tensor, lam: Tensor, damping: str) -> Tensor:
     return blocks + lam[:, None, None, None] * D
 
 
+@dataclass
+class Factorization:
+    """A damped system factored once: :meth:`solve` gives the step −H⁻¹g for any gradient."""
+
+    # False where a factorization failed (the step is then zero), bool (B,).
+    ok: Tensor
+    # (pose_gradient (B, m, 6), point_gradient (B, n, 3)) → (δp, δl).
+    solve_fn: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+
+    def solve(self, pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
+        """The step (δp (B, m, 6), δl (B, n, 3)) = −H⁻¹ g for the gradient g."""
+        return self.solve_fn(pose_gradient, point_gradient)
+
+
+@dataclass
+class _DenseCholesky:
+    """Batched Cholesky of (B, N, N) SPD matrices; never raises on an indefinite one."""
+
+    L: Tensor
+    ok: Tensor
+
+    @staticmethod
+    def of(A: Tensor) -> _DenseCholesky:
+        L, info = torch.linalg.cholesky_ex(A)
+        ok = info == 0
+        if not bool(ok.all()):  # rare: swap in I so the batched solve stays finite
+            eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+            L = torch.where(ok[..., None, None], L, eye)
+        return _DenseCholesky(L, ok)
+
+    def solve(self, b: Tensor) -> Tensor:
+        x = torch.cholesky_solve(b[..., None], self.L)[..., 0]
+        return torch.where(self.ok[..., None], x, torch.zeros_like(x))
+
+
+def _batched_cholesky_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Solve A x = b for SPD A (..., k, k); returns (x, ok) with ok False where Cholesky failed
+    (x is then zero). Never raises on an indefinite matrix."""
+    factor = _DenseCholesky.of(A)
+    return factor.solve(b), factor.ok
+
+
 def term_pair_matrix(lin, data: PointMapData) -> Tensor | None:
     """The pose terms' off-diagonal blocks as a dense (B, 6m, 6m) matrix, or None."""
     if lin.terms is None or lin.terms.pair_blocks.shape[1] == 0:
@@ -119,16 +187,92 @@ def term_pair_matrix(lin, data: PointMapData) -> Tensor | None:
     return dense.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
 
 
-def _batched_cholesky_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """Solve A x = b for SPD A (..., k, k); returns (x, ok) with ok False where Cholesky failed
-    (x is then zero). Never raises on an indefinite matrix."""
-    L, info = torch.linalg.cholesky_ex(A)
-    ok = info == 0
-    if not bool(ok.all()):  # rare: swap in I so the batched solve stays finite
-        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
-        L = torch.where(ok[..., None, None], L, eye)
-    x = torch.cholesky_solve(b[..., None], L)[..., 0]
-    return torch.where(ok[..., None], x, torch.zeros_like(x)), ok
+@dataclass
+class SparseSchur:
+    """What the sparse reduced solve needs once per solve: the observation pairs, the block
+    pattern of S and where each contribution goes in it (built by :meth:`build`)."""
+
+    structure: SchurStructure
+    pattern: BlockPattern
+    # Unique block of each observation pair (P,), and of each kept term pair (T,).
+    pair_slot: Tensor
+    term_slot: Tensor
+    # The term pairs (indices into lin.terms.pair_blocks flattened over B) that are upper
+    # (i ≤ k) blocks, (T,).
+    term_keep: Tensor
+
+    @staticmethod
+    def build(
+        data: PointMapData, structure: SchurStructure | None = None, ordering: str = "mmd"
+    ) -> SparseSchur:
+        structure = structure if structure is not None else SchurStructure.build(data)
+        m = data.num_poses
+        B = data.pose_index.shape[0]
+        term_keys = term_pair_keys(data).reshape(-1)
+        i, k = (term_keys % (m * m)) // m, term_keys % m
+        term_keep = (i <= k).nonzero().squeeze(1)
+        keys = torch.cat((structure.block, term_keys[term_keep]))
+        pattern, slot = BlockPattern.build(keys, B, m, ordering)
+        P = structure.num_pairs
+        return SparseSchur(structure, pattern, slot[:P], slot[P:], term_keep)
+
+    def reduced_factor(self, lin, data: PointMapData, U: Tensor, pair_values: Tensor):
+        """Factor S from the damped diagonal blocks U (B, m, 6, 6), the summed observation-pair
+        blocks of the pattern (Q, 6, 6) (already negated) and the pose terms' pairs."""
+        B, m = U.shape[:2]
+        values = pair_values
+        values.index_add_(0, self._diagonal_slots(B, m, U.device), U.reshape(-1, 6, 6))
+        if lin.terms is not None and self.term_keep.numel() > 0:
+            blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_keep]
+            values.index_add_(0, self.term_slot, blocks)
+        return self.pattern.factor(values)
+
+    def _diagonal_slots(self, B: int, m: int, device) -> Tensor:
+        diag = (torch.arange(B * m, device=device) * m) + torch.arange(m, device=device).repeat(B)
+        return torch.searchsorted(self.pattern.keys, diag)
+
+
+def choose_reduced_solver(data: PointMapData, reduced_solver: str, dense_max_variables: int) -> str:
+    """ "dense" or "sparse" for ``reduced_solver`` "auto" (rule in :class:`SolverConfig`)."""
+    if reduced_solver != "auto":
+        return reduced_solver
+    m = data.num_poses
+    if 6 * m <= dense_max_variables:
+        return "dense"
+    # Observation pairs sharing a point bound the nonzero blocks of S from above.
+    counts = torch.bincount(
+        data.flat_point_index[data.valid], minlength=data.pose_index.shape[0] * data.num_points
+    ).reshape(data.pose_index.shape[0], -1)
+    pairs = (counts * (counts + 1) // 2).sum(-1).max()
+    return "sparse" if int(pairs) <= m * m // 4 else "dense"
+
+
+def factorize(
+    lin: BlockLinearization | StructuredLinearization,
+    data: PointMapData,
+    structure: SchurStructure | None,
+    lam: Tensor,
+    damping: str,
+    linear_solver: str = "schur",
+    chunk_size: int = 1 << 20,
+    sparse: SparseSchur | None = None,
+) -> Factorization:
+    """Factor the damped system of either linearization form.
+
+    ``linear_solver`` is "schur" or "dense" (block form only); with "schur", a given
+    ``sparse`` (:class:`SparseSchur`) factors the reduced system sparsely, else densely.
+    """
+    if linear_solver == "dense":
+        if isinstance(lin, StructuredLinearization):
+            raise ValueError("solve_step: the dense solver needs the block linearization")
+        return _factorize_dense(lin, data, lam, damping)
+    if isinstance(lin, StructuredLinearization):
+        return _factorize_structured(lin, data, lam, damping, sparse)
+    if sparse is not None:
+        structure = sparse.structure
+    if structure is None:
+        structure = SchurStructure.build(data)
+    return _factorize_schur(lin, data, structure, lam, damping, chunk_size, sparse)
 
 
 def solve_step(
@@ -139,92 +283,20 @@ def solve_step(
     damping: str,
     linear_solver: str = "schur",
     chunk_size: int = 1 << 20,
+    sparse: SparseSchur | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Damped Gauss-Newton step (δp (B, m, 6), δl (B, n, 3), ok (B,)) for either
-    linearization form; ``linear_solver`` is "schur" or "dense" (block form only)."""
-    if linear_solver == "dense":
-        if isinstance(lin, StructuredLinearization):
-            raise ValueError("solve_step: the dense solver needs the block linearization")
-        return solve_dense(lin, data, lam, damping)
-    if isinstance(lin, StructuredLinearization):
-        return solve_schur_structured(lin, data, lam, damping)
-    if structure is None:
-        structure = SchurStructure.build(data)
-    return solve_schur(lin, data, structure, lam, damping, chunk_size)
+    linearization form (:func:`factorize`, then solve for the linearization's gradient)."""
+    f = factorize(lin, data, structure, lam, damping, linear_solver, chunk_size, sparse)
+    dp, dl = f.solve(lin.pose_gradient, lin.point_gradient)
+    return dp, dl, f.ok
 
 
 def solve_schur_structured(
     lin: StructuredLinearization, data: PointMapData, lam: Tensor, damping: str
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Schur step for the structured (ICP-SLAM, scalar-weight) linearization.
-
-    With W_e = w_e G_jᵀ and V_j = v_j I (module doc of :mod:`.linearize`), the reduced matrix is
-
-        S_ik = δ_ik U_i − Σ_j (a_ij a_kj / v_j) G_jᵀ G_j,
-
-    a_ij the coupling weight of the observation of point j in frame i (0 if none). Each of the
-    10 monomial coefficients of G_jᵀ G_j is then one product A·diag(f/v)·Aᵀ, all computed by a
-    single batched GEMM of (m × n) by (n × 10m): 20·m²·n flops per problem, no per-pair
-    products. The (m × n) matrix A of coupling weights is the only O(m·n) buffer.
-
-    Returns:
-        (δp (B, m, 6), δl (B, n, 3), ok (B,) bool).
-    """
-    B, _E = data.pose_index.shape
-    m, n = data.num_poses, data.num_points
-    U = damp(lin.pose_blocks, lam, damping)
-    v = lin.point_weight
-    if damping == "levenberg":
-        v_d = v + lam[:, None]
-    else:
-        v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
-    batch = torch.arange(B, device=v.device)[:, None]
-    A = (
-        v.new_zeros(B * m * n)
-        .index_add_(
-            0,
-            ((batch * m + data.pose_index) * n + data.point_index).reshape(-1),
-            lin.coupling_weight.reshape(-1),
-        )
-        .reshape(B, m, n)
-    )
-    # (B, 10, n), contiguous so that the broadcast product below comes out contiguous too.
-    F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
-    # (A diag(f/v))_f for the 10 monomials f, stacked as (B, 10·m, n), times Aᵀ.
-    AF = (A[:, None] * F[:, :, None, :]).view(B, 10 * m, n)
-    C = torch.bmm(AF, A.transpose(1, 2)).reshape(B, 10, m, m)
-    S = -blocks_from_monomials(C.permute(0, 2, 3, 1))  # (B, m, m, 6, 6)
-    idx = torch.arange(m, device=S.device)
-    S[:, idx, idx] += U
-    S = S.transpose(2, 3).reshape(B, 6 * m, 6 * m)
-    pairs = term_pair_matrix(lin, data)
-    if pairs is not None:
-        S = S + pairs
-
-    # Right-hand side: −g_p + Σ_e (w_e / v_j) G_jᵀ g_lj.
-    X_e = gather_points(lin.points, data)
-    y = (lin.coupling_weight / per_observation(v_d, data.flat_point_index))[
-        ..., None
-    ] * gather_points(lin.point_gradient, data)
-    Gty = torch.cat((torch.linalg.cross(X_e, y, dim=-1), y), -1)
-    rhs = (
-        (-lin.pose_gradient)
-        .reshape(B * m, 6)
-        .index_add_(0, (batch * m + data.pose_index).reshape(-1), Gty.reshape(-1, 6))
-    )
-    dp, ok = _batched_cholesky_solve(S, rhs.reshape(B, 6 * m))
-    dp = dp.reshape(B, m, 6)
-
-    # Back-substitution: δl_j = −(g_lj + Σ_e w_e G_j δp_i(e)) / v_j, G_j δp = δω × X_j + δv.
-    dp_e = per_observation(dp, data.flat_pose_index)
-    G_dp = torch.linalg.cross(dp_e[..., :3], X_e, dim=-1) + dp_e[..., 3:]
-    acc = lin.point_gradient.reshape(B * n, 3).index_add(
-        0,
-        (batch * n + data.point_index).reshape(-1),
-        (lin.coupling_weight[..., None] * G_dp).reshape(-1, 3),
-    )
-    dl = -acc.reshape(B, n, 3) / v_d[..., None]
-    return dp, dl, ok
+    """Schur step for the structured linearization, dense reduced system (:func:`factorize`)."""
+    return solve_step(lin, data, None, lam, damping)
 
 
 def solve_schur(
@@ -235,11 +307,114 @@ def solve_schur(
     damping: str,
     chunk_size: int = 1 << 20,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Damped step by Schur complement on the points.
+    """Schur step for the block linearization, dense reduced system (:func:`factorize`)."""
+    return solve_step(lin, data, structure, lam, damping, "schur", chunk_size)
 
-    Returns:
-        (δp (B, m, 6), δl (B, n, 3), ok (B,) bool — False where a Cholesky failed).
+
+def solve_dense(
+    lin: BlockLinearization, data: PointMapData, lam: Tensor, damping: str
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped step from the full (6m + 3n)² system — small problems and cross-checks only."""
+    return solve_step(lin, data, None, lam, damping, "dense")
+
+
+def _factorize_structured(
+    lin: StructuredLinearization,
+    data: PointMapData,
+    lam: Tensor,
+    damping: str,
+    sparse: SparseSchur | None,
+) -> Factorization:
+    """Schur factorization for the structured (ICP-SLAM, scalar-weight) linearization.
+
+    With W_e = w_e G_jᵀ and V_j = v_j I (module doc of :mod:`.linearize`), the reduced matrix is
+
+        S_ik = δ_ik U_i − Σ_j (a_ij a_kj / v_j) G_jᵀ G_j,
+
+    a_ij the coupling weight of the observation of point j in frame i (0 if none). Densely,
+    each of the 10 monomial coefficients of G_jᵀ G_j is one product A·diag(f/v)·Aᵀ, all
+    computed by a single batched GEMM of (m × n) by (n × 10m): 20·m²·n flops per problem, no
+    per-pair products; the (m × n) matrix A of coupling weights is the only O(m·n) buffer.
+    Sparsely, each observation pair (a, b) of point j adds the 10 monomials of X_j times
+    −a_a a_b / v_j to its block of the pattern (twice for a ≠ b in one pose: the pair and its
+    mirror), and the blocks are formed once per unique block.
     """
+    B, _E = data.pose_index.shape
+    m, n = data.num_poses, data.num_points
+    U = damp(lin.pose_blocks, lam, damping)
+    v = lin.point_weight
+    if damping == "levenberg":
+        v_d = v + lam[:, None]
+    else:
+        v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
+    batch = torch.arange(B, device=v.device)[:, None]
+    if sparse is None:
+        A = (
+            v.new_zeros(B * m * n)
+            .index_add_(
+                0,
+                ((batch * m + data.pose_index) * n + data.point_index).reshape(-1),
+                lin.coupling_weight.reshape(-1),
+            )
+            .reshape(B, m, n)
+        )
+        # (B, 10, n), contiguous so that the broadcast product below comes out contiguous.
+        F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
+        # (A diag(f/v))_f for the 10 monomials f, stacked as (B, 10·m, n), times Aᵀ.
+        AF = (A[:, None] * F[:, :, None, :]).view(B, 10 * m, n)
+        C = torch.bmm(AF, A.transpose(1, 2)).reshape(B, 10, m, m)
+        S = -blocks_from_monomials(C.permute(0, 2, 3, 1))  # (B, m, m, 6, 6)
+        idx = torch.arange(m, device=S.device)
+        S[:, idx, idx] += U
+        S = S.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+        pairs = term_pair_matrix(lin, data)
+        if pairs is not None:
+            S = S + pairs
+        reduced = _DenseCholesky.of(S)
+    else:
+        st = sparse.structure
+        w = lin.coupling_weight.reshape(-1)
+        coefficient = -(w[st.first] * w[st.second]) / v_d.reshape(-1)[st.point]
+        coefficient = torch.where(st.same_pose & ~st.self_pair, 2 * coefficient, coefficient)
+        mono = monomials(lin.points.reshape(-1, 3)[st.point]) * coefficient[:, None]
+        sums = mono.new_zeros(sparse.pattern.num_unique, 10).index_add_(0, sparse.pair_slot, mono)
+        reduced = sparse.reduced_factor(lin, data, U, blocks_from_monomials(sums))
+    X_e = gather_points(lin.points, data)
+    w_over_v = lin.coupling_weight / per_observation(v_d, data.flat_point_index)
+
+    def solve(pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
+        # Right-hand side: −g_p + Σ_e (w_e / v_j) G_jᵀ g_lj.
+        y = w_over_v[..., None] * gather_points(point_gradient, data)
+        Gty = torch.cat((torch.linalg.cross(X_e, y, dim=-1), y), -1)
+        rhs = (
+            (-pose_gradient)
+            .reshape(B * m, 6)
+            .index_add(0, (batch * m + data.pose_index).reshape(-1), Gty.reshape(-1, 6))
+        )
+        dp = reduced.solve(rhs.reshape(B, 6 * m)).reshape(B, m, 6)
+        # Back-substitution: δl_j = −(g_lj + Σ_e w_e G_j δp_i(e)) / v_j, G_j δp = δω × X_j + δv.
+        dp_e = per_observation(dp, data.flat_pose_index)
+        G_dp = torch.linalg.cross(dp_e[..., :3], X_e, dim=-1) + dp_e[..., 3:]
+        acc = point_gradient.reshape(B * n, 3).index_add(
+            0,
+            (batch * n + data.point_index).reshape(-1),
+            (lin.coupling_weight[..., None] * G_dp).reshape(-1, 3),
+        )
+        return dp, -acc.reshape(B, n, 3) / v_d[..., None]
+
+    return Factorization(reduced.ok, solve)
+
+
+def _factorize_schur(
+    lin: BlockLinearization,
+    data: PointMapData,
+    structure: SchurStructure,
+    lam: Tensor,
+    damping: str,
+    chunk_size: int,
+    sparse: SparseSchur | None,
+) -> Factorization:
+    """Schur factorization for the block linearization (module doc)."""
     B, E = data.pose_index.shape
     m, n = data.num_poses, data.num_points
     U = damp(lin.pose_blocks, lam, damping)
@@ -252,61 +427,61 @@ def solve_schur(
     V_inv = torch.cholesky_inverse(LV)  # (B, n, 3, 3)
 
     W = lin.coupling.reshape(B * E, 6, 3)
-    V_inv_e = V_inv.reshape(B * n, 3, 3)[
-        (torch.arange(B, device=W.device)[:, None] * n + data.point_index).reshape(-1)
-    ]
+    batch = torch.arange(B, device=W.device)[:, None]
+    V_inv_e = V_inv.reshape(B * n, 3, 3)[(batch * n + data.point_index).reshape(-1)]
     Y = W @ V_inv_e  # (B·E, 6, 3)
 
-    blocks = W.new_zeros(B * m * m, 6, 6)
-    for start in range(0, structure.num_pairs, chunk_size):
-        sl = slice(start, start + chunk_size)
-        prod = Y[structure.first[sl]] @ W[structure.second[sl]].transpose(-1, -2)
-        prod = torch.where(structure.self_pair[sl, None, None], 0.5 * prod, prod)
-        blocks.index_add_(0, structure.block[sl], prod)
-    A = blocks.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
-    S = -(A + A.transpose(-1, -2))
-    S_blocks = S.view(B, m, 6, m, 6)  # a view: adding U on the block diagonal edits S
-    idx = torch.arange(m, device=S.device)
-    S_blocks[:, idx, :, idx, :] += U.transpose(0, 1)
-    pairs = term_pair_matrix(lin, data)
-    if pairs is not None:
-        S = S + pairs
+    if sparse is None:
+        blocks = W.new_zeros(B * m * m, 6, 6)
+        for start in range(0, structure.num_pairs, chunk_size):
+            sl = slice(start, start + chunk_size)
+            prod = Y[structure.first[sl]] @ W[structure.second[sl]].transpose(-1, -2)
+            prod = torch.where(structure.self_pair[sl, None, None], 0.5 * prod, prod)
+            blocks.index_add_(0, structure.block[sl], prod)
+        A = blocks.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
+        S = -(A + A.transpose(-1, -2))
+        S_blocks = S.view(B, m, 6, m, 6)  # a view: adding U on the block diagonal edits S
+        idx = torch.arange(m, device=S.device)
+        S_blocks[:, idx, :, idx, :] += U.transpose(0, 1)
+        pairs = term_pair_matrix(lin, data)
+        if pairs is not None:
+            S = S + pairs
+        reduced = _DenseCholesky.of(S)
+    else:
+        values = W.new_zeros(sparse.pattern.num_unique, 6, 6)
+        for start in range(0, structure.num_pairs, chunk_size):
+            sl = slice(start, start + chunk_size)
+            prod = Y[structure.first[sl]] @ W[structure.second[sl]].transpose(-1, -2)
+            mirror = structure.same_pose[sl] & ~structure.self_pair[sl]
+            prod = torch.where(mirror[:, None, None], prod + prod.transpose(-1, -2), prod)
+            values.index_add_(0, sparse.pair_slot[sl], -prod)
+        reduced = sparse.reduced_factor(lin, data, U, values)
 
-    # Right-hand side: −g_p + Σ_e Y_e g_l(j(e)).
-    gl_e = lin.point_gradient.reshape(B * n, 3)[
-        (torch.arange(B, device=W.device)[:, None] * n + data.point_index).reshape(-1)
-    ]
-    Yg = (Y @ gl_e[..., None])[..., 0].reshape(B, E, 6)
-    rhs = -lin.pose_gradient.clone()
-    rhs.reshape(B * m, 6).index_add_(
-        0,
-        (torch.arange(B, device=W.device)[:, None] * m + data.pose_index).reshape(-1),
-        Yg.reshape(-1, 6),
-    )
-    dp, pose_ok = _batched_cholesky_solve(S, rhs.reshape(B, 6 * m))
-    dp = dp.reshape(B, m, 6)
+    def solve(pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
+        # Right-hand side: −g_p + Σ_e Y_e g_l(j(e)).
+        gl_e = point_gradient.reshape(B * n, 3)[(batch * n + data.point_index).reshape(-1)]
+        Yg = (Y @ gl_e[..., None])[..., 0].reshape(B, E, 6)
+        rhs = (
+            (-pose_gradient)
+            .reshape(B * m, 6)
+            .index_add(0, (batch * m + data.pose_index).reshape(-1), Yg.reshape(-1, 6))
+        )
+        dp = reduced.solve(rhs.reshape(B, 6 * m)).reshape(B, m, 6)
+        # Back-substitution: δl_j = −V_j⁻¹ (g_lj + Σ_e W_eᵀ δp_i(e)).
+        dp_e = per_observation(dp, data.flat_pose_index)
+        Wt_dp = (lin.coupling.transpose(-1, -2) @ dp_e[..., None])[..., 0]  # (B, E, 3)
+        acc = point_gradient.reshape(B * n, 3).index_add(
+            0, (batch * n + data.point_index).reshape(-1), Wt_dp.reshape(-1, 3)
+        )
+        return dp, -(V_inv @ acc.reshape(B, n, 3)[..., None])[..., 0]
 
-    # Back-substitution: δl_j = −V_j⁻¹ (g_lj + Σ_e W_eᵀ δp_i(e)).
-    dp_e = per_observation(dp, data.flat_pose_index)
-    Wt_dp = (lin.coupling.transpose(-1, -2) @ dp_e[..., None])[..., 0]  # (B, E, 3)
-    acc = lin.point_gradient.clone()
-    acc.reshape(B * n, 3).index_add_(
-        0,
-        (torch.arange(B, device=W.device)[:, None] * n + data.point_index).reshape(-1),
-        Wt_dp.reshape(-1, 3),
-    )
-    dl = -(V_inv @ acc[..., None])[..., 0]
-    return dp, dl, point_ok & pose_ok
+    return Factorization(point_ok & reduced.ok, solve)
 
 
-def solve_dense(
+def _factorize_dense(
     lin: BlockLinearization, data: PointMapData, lam: Tensor, damping: str
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Damped step from the full (6m + 3n)² system — small problems and cross-checks only.
-
-    Returns:
-        (δp (B, m, 6), δl (B, n, 3), ok (B,) bool).
-    """
+) -> Factorization:
+    """The full (6m + 3n)² system — small problems and cross-checks only."""
     B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     N = 6 * m + 3 * n
@@ -328,6 +503,11 @@ def solve_dense(
     pairs = term_pair_matrix(lin, data)
     if pairs is not None:
         H[:, : 6 * m, : 6 * m] += pairs
-    g = torch.cat((lin.pose_gradient.reshape(B, 6 * m), lin.point_gradient.reshape(B, 3 * n)), -1)
-    x, ok = _batched_cholesky_solve(H, -g)
-    return x[:, : 6 * m].reshape(B, m, 6), x[:, 6 * m :].reshape(B, n, 3), ok
+    full = _DenseCholesky.of(H)
+
+    def solve(pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
+        g = torch.cat((pose_gradient.reshape(B, 6 * m), point_gradient.reshape(B, 3 * n)), -1)
+        x = full.solve(-g)
+        return x[:, : 6 * m].reshape(B, m, 6), x[:, 6 * m :].reshape(B, n, 3)
+
+    return Factorization(full.ok, solve)

@@ -128,6 +128,17 @@ def _select(mask: Tensor, new, old):
     return type(new)(**fields)
 
 
+def sparse_schur(data: PointMapData, config: SolverConfig) -> linear.SparseSchur | None:
+    """The sparse reduced-system structure when ``config`` (and, for "auto", the problem's size
+    and pattern) asks for the sparse factorization; None for the dense one."""
+    if config.linear_solver != "schur" or config.algorithm == "gradient_descent":
+        return None
+    choice = linear.choose_reduced_solver(data, config.reduced_solver, config.dense_max_variables)
+    if choice == "dense":
+        return None
+    return linear.SparseSchur.build(data, ordering=config.ordering)
+
+
 def _iterate(
     state: _State,
     data: PointMapData,
@@ -142,6 +153,7 @@ def _iterate(
     algorithm = config.algorithm
     structured = config.linear_solver == "schur"
     structure = None
+    sparse = sparse_schur(data, config)
     running = int(Status.RUNNING)
     xi, X, lam, nu = state.xi, state.X, state.lam, state.nu
     status, iterations, cost, lin = state.status, state.iterations, state.cost, state.lin
@@ -156,7 +168,11 @@ def _iterate(
             dl = -lam[:, None, None] * lin.point_gradient
             ok = torch.ones_like(active)
         else:
-            if structure is None and not isinstance(lin, StructuredLinearization):
+            if (
+                structure is None
+                and sparse is None
+                and not isinstance(lin, StructuredLinearization)
+            ):
                 structure = linear.SchurStructure.build(data)
             dp, dl, ok = linear.solve_step(
                 lin,
@@ -166,6 +182,7 @@ def _iterate(
                 config.damping,
                 config.linear_solver,
                 config.schur_chunk_size,
+                sparse,
             )
         xi_new, X_new = retract(xi, X, dp, dl)
         lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured)
