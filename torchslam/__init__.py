@@ -16,6 +16,7 @@ from torchslam import (
     manifold,
     metrics,
     posegraph,
+    terms,
     tracks,
 )
 from torchslam._checks import validation
@@ -31,6 +32,7 @@ from torchslam.solver import (
     solve_differentiable,
     solve_tensors,
 )
+from torchslam.terms import PosePriorTerm, RelativePoseTerm, Term
 
 __version__ = "0.1.0"
 
@@ -40,9 +42,12 @@ __all__ = [
     "ImplicitConfig",
     "PointMapData",
     "PointMapProblem",
+    "PosePriorTerm",
+    "RelativePoseTerm",
     "SolveResult",
     "SolverConfig",
     "Status",
+    "Term",
     "TrivialLoss",
     "TukeyLoss",
     "__version__",
@@ -62,6 +67,7 @@ __all__ = [
     "solve",
     "solve_differentiable",
     "solve_tensors",
+    "terms",
     "tracks",
     "validation",
 ]

@@ -67,6 +67,7 @@ from torchslam.lie import se3
 from torchslam.posegraph import between
 from torchslam.posegraph.graph import PoseGraph
 from torchslam.solver.result import REASONS, Status
+from torchslam.solver.sparse import fill_reducing_order
 
 __all__ = [
     "IterationInfo",
@@ -88,8 +89,6 @@ _DAMPINGS = ("marquardt", "levenberg")
 _JACOBIANS = ("analytic", "jacrev")
 _LINEAR_SOLVERS = ("auto", "sparse", "dense")
 _ORDERINGS = ("mmd", "colamd", "natural")
-# SuperLU's names of the orderings, applied to the n × n vertex graph.
-_PERMC_SPEC = {"mmd": "MMD_AT_PLUS_A", "colamd": "COLAMD", "natural": "NATURAL"}
 
 
 @dataclass(frozen=True)
@@ -416,33 +415,6 @@ class _SparseLayout:
     position: np.ndarray
 
 
-def _fill_reducing_order(
-    n: int, first: np.ndarray, second: np.ndarray, ordering: str
-) -> np.ndarray:
-    """New position (n,) of each variable, from SuperLU's column ordering of the vertex graph.
-
-    SuperLU returns ``perm_c`` with perm_c[v] = the position of column v in the factor. The
-    n × n pattern (one entry per vertex pair joined by an edge) gets a dominant diagonal so
-    that no pivoting disturbs the order. Ordering the n vertices instead of the 6n unknowns
-    takes milliseconds and, expanded to blocks, gave the same fill as SuperLU's MMD ordering of
-    the full pattern on sphere2500 (1.34 M entries in L).
-    """
-    if ordering == "natural" or n <= 1:
-        return np.arange(n)
-    both = (first >= 0) & (second >= 0) & (first != second)
-    r = np.concatenate((np.arange(n), first[both], second[both]))
-    c = np.concatenate((np.arange(n), second[both], first[both]))
-    values = np.where(r == c, 4.0 * n, -1.0)
-    pattern = scipy.sparse.csc_matrix((values, (r, c)), shape=(n, n))
-    lu = scipy.sparse.linalg.splu(
-        pattern,
-        permc_spec=_PERMC_SPEC[ordering],
-        diag_pivot_thresh=0.0,
-        options={"SymmetricMode": True},
-    )
-    return np.asarray(lu.perm_c)
-
-
 def _build_sparse_layout(structure: _Structure, ordering: str) -> _SparseLayout:
     """CSC layout of P H Pᵀ and the assembly map, in O(E) vectorized steps (no big sorts).
 
@@ -456,7 +428,7 @@ def _build_sparse_layout(structure: _Structure, ordering: str) -> _SparseLayout:
     second = structure.second.cpu().numpy()
     prior = structure.prior.cpu().numpy()
     E, P = first.shape[0], prior.shape[0]
-    position = _fill_reducing_order(n, first, second, ordering)
+    position = fill_reducing_order(n, first, second, ordering)
     a = np.arange(6)
 
     # Block pattern (diagonal + both orientations of every edge between free vertices).
