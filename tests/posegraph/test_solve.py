@@ -340,3 +340,24 @@ def test_cli_missing_file_exits_2_without_traceback(tmp_path):
     assert "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert "absent.g2o" in proc.stderr
+
+
+@pytest.mark.parametrize("reduced_solver", ["sparse", "dense"])
+def test_graph_as_a_relative_pose_term_reaches_the_same_optimum(ring, reduced_solver):
+    # The general solver with the edges as a RelativePoseTerm on T_i0 = T_i⁻¹ (no points)
+    # minimizes the same cost as the pose-graph solver: same optimum, same poses.
+    import torchslam
+
+    graph, _ = ring
+    reference = solve_pose_graph(graph, config=PoseGraphSolverConfig(**TIGHT))
+    none = torch.zeros(1, 0, dtype=torch.int64)
+    empty = graph.poses.new_zeros(1, 0, 3)
+    problem = torchslam.PointMapProblem(
+        graph.frame_poses()[None], empty, none, none, empty, terms=[graph.relative_pose_term()]
+    )
+    assert float(problem.cost().detach()[0]) == pytest.approx(reference.initial_cost, rel=1e-12)
+    config = torchslam.SolverConfig(reduced_solver=reduced_solver, **TIGHT)
+    result = torchslam.solve(problem, config)
+    assert result.converged
+    assert float(result.final_cost[0]) == pytest.approx(reference.final_cost, rel=1e-10)
+    assert (se3.inverse(problem.poses()[0]) - reference.poses).abs().max() < 1e-8

@@ -18,6 +18,8 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam.lie import se3
+from torchslam.terms import RelativePoseTerm
 
 __all__ = ["PoseGraph"]
 
@@ -98,6 +100,19 @@ class PoseGraph:
         edges are loop closures.
         """
         return self.edges[:, 1] == self.edges[:, 0] + 1
+
+    def frame_poses(self) -> Tensor:
+        """The vertices as ICP-SLAM poses T_i0 = T_i⁻¹ (world → frame i), (N, 4, 4)."""
+        return se3.inverse(self.poses)
+
+    def relative_pose_term(self) -> RelativePoseTerm:
+        """The edges as one :class:`torchslam.RelativePoseTerm` on the poses T_i0 = T_i⁻¹.
+
+        g2o's Z_ij ≈ T_i⁻¹ T_j equals T_i0 T_j0⁻¹, the term's measurement, and both residuals
+        are Log(Z_ij⁻¹ T_i⁻¹ T_j): the same cost, so a pose graph can join point observations
+        in one :class:`torchslam.PointMapProblem` (with :meth:`frame_poses` as its poses).
+        """
+        return RelativePoseTerm(self.edges, self.measurements, information=self.information)
 
     def with_poses(self, poses: Tensor) -> PoseGraph:
         """A copy of the graph with new vertex poses (N, 4, 4); everything else is shared."""

@@ -76,9 +76,9 @@ class _State:
 
 
 def _gradient_norm(lin) -> Tensor:
-    return torch.maximum(
-        lin.pose_gradient.abs().flatten(1).amax(-1), lin.point_gradient.abs().flatten(1).amax(-1)
-    )
+    # One cat, so that a problem without points (pose terms only) works too.
+    g = torch.cat((lin.pose_gradient.flatten(1), lin.point_gradient.flatten(1)), dim=1)
+    return g.abs().amax(-1)
 
 
 def _initial_state(
