@@ -98,7 +98,11 @@ class Term:
                 f"{fn}: argument 'pose_index' must be a torch.Tensor, "
                 f"got {type(pose_index).__name__}"
             )
-        if pose_index.dtype.is_floating_point or pose_index.dtype in (torch.bool, torch.complex64):
+        if (
+            pose_index.dtype.is_floating_point
+            or pose_index.dtype.is_complex
+            or pose_index.dtype == torch.bool
+        ):
             raise TypeError(
                 f"{fn}: argument 'pose_index' must be an integer tensor, got {pose_index.dtype}"
             )

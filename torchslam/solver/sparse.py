@@ -119,9 +119,10 @@ class BlockPattern:
             q = np.arange(stop - start)
             # Entry (r, c) of block q sits at (6·i + r, 6·k + c); off-diagonal blocks also at
             # the mirror (6·k + c, 6·i + r). Source index of entry (q, r, c): 36 q + 6 r + c.
-            src = (36 * q[:, None, None] + 6 * a[:, None] + a[None, :]).reshape(len(q), 36)
-            rows = (6 * order[i][:, None, None] + a[:, None] + 0 * a[None, :]).reshape(-1, 36)
-            cols = (6 * order[k][:, None, None] + 0 * a[:, None] + a[None, :]).reshape(-1, 36)
+            shape = (len(q), 6, 6)
+            src = (36 * q[:, None, None] + 6 * a[:, None] + a[None, :]).reshape(-1, 36)
+            rows = np.broadcast_to(6 * order[i][:, None, None] + a[:, None], shape).reshape(-1, 36)
+            cols = np.broadcast_to(6 * order[k][:, None, None] + a[None, :], shape).reshape(-1, 36)
             off = i != k
             all_rows = np.concatenate((rows.ravel(), cols[off].ravel()))
             all_cols = np.concatenate((cols.ravel(), rows[off].ravel()))
