@@ -360,7 +360,11 @@ class PointMapProblem(nn.Module):
         return raw_residuals(self.pose_tangent, self.points, self.data)
 
     def residuals(self) -> Tensor:
-        """Weighted (whitened) residuals Lᵀ r_e with Ω_e = L Lᵀ, (B, E, 3), zero on padding."""
+        """Weighted (whitened) residuals Lᵀ r_e with Ω_e = L Lᵀ, (B, E, 3), zero on padding.
+
+        The point observations only: the pose terms' residuals are their own
+        (:func:`torchslam.terms.term_jacobians`); :meth:`cost` sums both.
+        """
         return self.data.whiten(self.raw_residuals())
 
     def cost(self) -> Tensor:
@@ -388,7 +392,8 @@ class PointMapProblem(nn.Module):
     def dense_jacobian(self, mode: str = "analytic") -> Tensor:
         """The seed's overall Jacobian of the whitened residuals, (B, 3E, 6m + 3n).
 
-        For small problems and debugging only: refuses (ValueError) above
+        Rows of the point observations only (the pose terms are not included). For small
+        problems and debugging only: refuses (ValueError) above
         ``torchslam.jacobians.DENSE_JACOBIAN_MAX_ENTRIES`` entries. Padding rows are zero.
         """
         B, E = self.data.pose_index.shape

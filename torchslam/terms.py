@@ -134,11 +134,27 @@ class Term:
                 raise ValueError(f"{fn}: argument 'weight' must be ≥ 0, got a negative entry")
         if information is not None:
             _checks.check_tensor(fn, "information", information)
-            if information.dim() != len(lead) + 2 or tuple(information.shape[: len(lead)]) != lead:
+            if (
+                information.dim() != len(lead) + 2
+                or tuple(information.shape[: len(lead)]) != lead
+                or information.shape[-1] != information.shape[-2]
+            ):
                 raise ValueError(
                     f"{fn}: argument 'information' must have shape {lead} + (d, d), "
                     f"got {tuple(information.shape)}"
                 )
+            _checks.check_finite(fn, "information", information)
+            if _checks.value_checks_active() and information.numel() > 0:
+                info = information.detach()
+                asym = (info - info.transpose(-1, -2)).abs().amax(dim=(-1, -2))
+                scale = info.abs().amax(dim=(-1, -2)).clamp_min(1)
+                bad = (torch.linalg.cholesky_ex(info)[1] > 0) | (asym > 1e-9 * scale)
+                if bool(bad.any()):
+                    where = tuple(int(i) for i in bad.nonzero()[0])
+                    raise ValueError(
+                        f"{fn}: argument 'information' must be symmetric positive definite; "
+                        f"instance {where} is not"
+                    )
         if valid is None:
             valid = torch.ones(lead, dtype=torch.bool, device=pose_index.device)
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool or tuple(valid.shape) != lead:
@@ -379,10 +395,15 @@ class PosePriorTerm(Term):
         fn = "PosePriorTerm"
         _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
         _checks.check_pose_matrix(fn, "measurements", measurements)
-        if not isinstance(pose_index, Tensor) or pose_index.dim() not in (1, 2):
-            got = tuple(pose_index.shape) if isinstance(pose_index, Tensor) else type(pose_index)
+        if not isinstance(pose_index, Tensor):
+            raise TypeError(
+                f"{fn}: argument 'pose_index' must be a torch.Tensor, "
+                f"got {type(pose_index).__name__}"
+            )
+        if pose_index.dim() not in (1, 2):
             raise ValueError(
-                f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), got {got}"
+                f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), "
+                f"got {tuple(pose_index.shape)}"
             )
         super().__init__(
             pose_index[..., None],
