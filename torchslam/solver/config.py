@@ -45,12 +45,12 @@ class SolverConfig:
     linear_solver: Literal["schur", "dense"] = "schur"
     # Factorization of the reduced 6m × 6m pose system of "schur": "dense" (batched
     # Cholesky, any device, differentiable), "sparse" (SciPy SuperLU with a fill-reducing
-    # ordering, :mod:`torchslam.solver.sparse`; for thousands of poses with local
+    # ordering, :mod:`torchslam.solver.sparse`; for hundreds to thousands of poses with local
     # co-visibility and relative-pose terms) or "auto": sparse when 6m > dense_max_variables
-    # and the observation pairs sharing a point number at most m²/4 (a sparse pattern).
+    # and S has at most m²/4 nonzero 6 × 6 blocks (linear.choose_reduced_solver).
     reduced_solver: Literal["auto", "dense", "sparse"] = "auto"
-    # Largest reduced system 6m that "auto" factors densely.
-    dense_max_variables: int = 1200
+    # Largest reduced system 6m that "auto" always factors densely.
+    dense_max_variables: int = 600
     # Fill-reducing ordering of the pose-block graph for "sparse".
     ordering: Literal["mmd", "colamd", "natural"] = "mmd"
     # Maximum number of iterations (linearizations) per solve.
@@ -73,7 +73,11 @@ class SolverConfig:
         _choice("linear_solver", self.linear_solver, _LINEAR_SOLVERS)
         _choice("reduced_solver", self.reduced_solver, _REDUCED_SOLVERS)
         _choice("ordering", self.ordering, _ORDERINGS)
-        if not isinstance(self.dense_max_variables, int) or self.dense_max_variables < 0:
+        if (
+            not isinstance(self.dense_max_variables, int)
+            or isinstance(self.dense_max_variables, bool)
+            or self.dense_max_variables < 0
+        ):
             raise ValueError(
                 "SolverConfig: 'dense_max_variables' must be an int ≥ 0, "
                 f"got {self.dense_max_variables!r}"

@@ -232,19 +232,54 @@ class SparseSchur:
         return torch.searchsorted(self.pattern.keys, diag)
 
 
-def choose_reduced_solver(data: PointMapData, reduced_solver: str, dense_max_variables: int) -> str:
-    """ "dense" or "sparse" for ``reduced_solver`` "auto" (rule in :class:`SolverConfig`)."""
+def choose_reduced_solver(
+    data: PointMapData,
+    reduced_solver: str,
+    dense_max_variables: int,
+    max_pairs: int = 10_000_000,
+    max_incidence: int = 20_000_000,
+) -> str:
+    """ "dense" or "sparse" for ``reduced_solver`` "auto": sparse when 6m > dense_max_variables
+    and every problem's S has at most m²/4 nonzero blocks (upper triangle, diagonal included).
+
+    The blocks of S come from pose pairs sharing a point and from the terms' pose pairs. In
+    order of cost: the observation pairs sharing a point (Σ_j c_j (c_j + 1)/2 for c_j views of
+    point j) bound the former from above; if inconclusive, the blocks are counted exactly
+    from the m × n co-visibility matrix A (nonzeros of A Aᵀ) when B·m·n ≤ ``max_incidence``,
+    else from the observation pairs themselves (as the sparse path forms them) when there are
+    at most ``max_pairs``; beyond that, dense.
+    """
     if reduced_solver != "auto":
         return reduced_solver
-    m = data.num_poses
+    m, n = data.num_poses, data.num_points
     if 6 * m <= dense_max_variables:
         return "dense"
-    # Observation pairs sharing a point bound the nonzero blocks of S from above.
-    counts = torch.bincount(
-        data.flat_point_index[data.valid], minlength=data.pose_index.shape[0] * data.num_points
-    ).reshape(data.pose_index.shape[0], -1)
-    pairs = (counts * (counts + 1) // 2).sum(-1).max()
-    return "sparse" if int(pairs) <= m * m // 4 else "dense"
+    B = data.pose_index.shape[0]
+    device = data.pose_index.device
+    limit = m * m // 4
+    keys = term_pair_keys(data)
+    counts = torch.bincount(data.flat_point_index[data.valid], minlength=B * n).reshape(B, -1)
+    pairs = int((counts * (counts + 1) // 2).sum(-1).max())
+    if pairs + m + keys.shape[1] <= limit:
+        return "sparse"
+    i, k = (keys % (m * m)) // m, keys % m
+    if B * m * n <= max_incidence:
+        # Exact, cheap: C = A Aᵀ over the points, plus the terms' pairs and the diagonal.
+        A = torch.zeros(B * m * n, dtype=torch.float32, device=device)
+        A[((data.flat_pose_index * n) + data.point_index)[data.valid]] = 1.0
+        A = A.reshape(B, m, n)
+        C = torch.bmm(A, A.transpose(1, 2)).reshape(-1)
+        C[keys.reshape(-1)] = 1.0
+        C = C.reshape(B, m, m) + torch.eye(m, device=device)
+        blocks = torch.triu(C > 0).flatten(1).sum(-1)
+        return "sparse" if int(blocks.max()) <= limit else "dense"
+    if B * pairs > max_pairs:
+        return "dense"
+    diagonal = (torch.arange(B * m, device=device) * m) + torch.arange(m, device=device).repeat(B)
+    structure = SchurStructure.build(data).block
+    unique = torch.unique(torch.cat((structure, keys[i <= k], diagonal)))
+    per_problem = torch.bincount(unique // (m * m), minlength=B)
+    return "sparse" if int(per_problem.max()) <= limit else "dense"
 
 
 def factorize(

@@ -158,8 +158,10 @@ class BlockPattern:
                     diag_pivot_thresh=0.0,
                     options={"SymmetricMode": True},
                 )
-                # Diagonal pivots of an SPD matrix are its LDLᵀ's D > 0.
-                if not bool((lu.U.diagonal() > 0).all()):
+                # An SPD matrix factors with its own diagonal pivots (no row swap) and its
+                # LDLᵀ's D > 0; SuperLU swaps rows at a zero pivot, so check both.
+                swapped = not np.array_equal(lu.perm_r, np.arange(size))
+                if swapped or not bool((lu.U.diagonal() > 0).all()):
                     lu = None
             except RuntimeError:  # SuperLU: "Factor is exactly singular"
                 lu = None
