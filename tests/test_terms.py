@@ -14,6 +14,7 @@ import pytest
 import torch
 from torch import Tensor
 
+import torchslam
 from torchslam import HuberLoss, PointMapProblem, SolverConfig, solve, validation
 from torchslam import problem as problem_module
 from torchslam.data.synthetic import make_scene
@@ -484,12 +485,20 @@ def test_term_argument_errors(generator):
         RelativePoseTerm(index, Z, weight=-torch.ones(3, dtype=F64))
     with pytest.raises(ValueError, match="'valid' must be a bool tensor"):
         RelativePoseTerm(index, Z, valid=torch.ones(3))
-    with pytest.raises(ValueError, match="constant 'measurements' must have leading shape"):
+    with pytest.raises(ValueError, match=r"'measurements' must have shape \(3,\) \+ \(4, 4\)"):
         RelativePoseTerm(index, Z[:2])
     with pytest.raises(TypeError, match="'measurements'"):
         RelativePoseTerm(index, Z.to(torch.int64))
     with pytest.raises(TypeError, match=r"'pose_index' must be a torch\.Tensor"):
         PosePriorTerm([0], Z[:1])
+    with pytest.raises(ValueError, match="'measurements' must have shape"):
+        RelativePoseTerm(index, Z[:, None].expand(3, 2, 4, 4))
+    with pytest.raises(ValueError, match="'measurements' must have shape"):
+        PosePriorTerm(torch.tensor([0, 1]), Z)
+    with pytest.raises(ValueError, match="constant 'X' must have leading shape"):
+        Term(index, {"X": torch.zeros(2, 3, dtype=F64)})
+    # Integer constants (e.g. labels) are allowed.
+    assert Term(index, {"label": torch.arange(3)}).constants["label"].dtype == torch.int64
     eye = torch.eye(6, dtype=F64).expand(3, 6, 6)
     with pytest.raises(ValueError, match="'information' must be symmetric positive definite"):
         RelativePoseTerm(index, Z, information=-eye)
@@ -761,3 +770,129 @@ def test_solve_agrees_with_scipy_least_squares():
     torch.testing.assert_close(
         ours.poses[0, 1:], se3.exp(x[: 6 * (m - 1)].reshape(-1, 6)), rtol=0, atol=1e-7
     )
+
+
+# ------------------------------------------------------------------------------------------
+# Edge cases found in review
+
+
+def _loop_inputs(m: int = 10):
+    from torchslam.data.loop import make_loop_scene
+
+    loop = make_loop_scene(num_poses=m, points_per_frame=6, window=3, noise_std=0.01, seed=0)
+    chain = [torch.eye(4, dtype=F64)]
+    for Z in loop.odometry:
+        chain.append(se3.inverse(Z) @ chain[-1])
+    return loop, torch.stack(chain)[None]
+
+
+def _loop_problem(loop, poses, terms):
+    s = loop.scene
+    return PointMapProblem(
+        poses, s.points_gt, s.pose_index, s.point_index, s.observations, valid=s.valid, terms=terms
+    )
+
+
+@pytest.mark.parametrize("reduced_solver", ["dense", "sparse"])
+def test_a_term_without_instances_changes_nothing(reduced_solver):
+    loop, poses = _loop_inputs()
+    empty = RelativePoseTerm(torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, 4, 4, dtype=F64))
+    odometry = RelativePoseTerm(loop.odometry_pairs, loop.odometry)
+    config = SolverConfig(reduced_solver=reduced_solver)
+    with_empty = _loop_problem(loop, poses, [empty, odometry])
+    without = _loop_problem(loop, poses, [odometry])
+    a, b = solve(with_empty, config), solve(without, config)
+    assert a.converged and b.converged
+    assert torch.equal(a.final_cost, b.final_cost)
+    assert torch.equal(with_empty.pose_tangent, without.pose_tangent)
+
+
+def test_term_weight_and_loss_gradients_implicit_equal_unrolled_and_finite_at_zero_weight():
+    loop, poses = _loop_inputs()
+    m = poses.shape[1]
+    weight = torch.tensor([100.0] * (m - 2) + [0.0], dtype=F64, requires_grad=True)
+    scale = torch.tensor(0.05, dtype=F64, requires_grad=True)
+    config = SolverConfig(
+        function_tolerance=1e-15, gradient_tolerance=1e-12, parameter_tolerance=1e-15
+    )
+
+    def loss_of(w, c, backward):
+        term = RelativePoseTerm(loop.odometry_pairs, loop.odometry, weight=w, loss=HuberLoss(c))
+        problem = _loop_problem(loop, poses, [term])
+        result = torchslam.solve_differentiable(
+            problem.pose_tangent.detach(),
+            problem.points.detach(),
+            problem.data,
+            config,
+            backward=backward,
+        )
+        return (result.pose_tangent[..., 3:] ** 2).sum()
+
+    grads = {
+        mode: torch.autograd.grad(loss_of(weight, scale, mode), (weight, scale))
+        for mode in ("implicit", "unrolled")
+    }
+    for g in grads["implicit"] + grads["unrolled"]:
+        assert torch.isfinite(g).all()
+    torch.testing.assert_close(grads["implicit"][0], grads["unrolled"][0], rtol=1e-5, atol=1e-9)
+    torch.testing.assert_close(grads["implicit"][1], grads["unrolled"][1], rtol=1e-5, atol=1e-9)
+    # The loss scale's gradient is real (a wrong odometry step sits in Huber's linear range)
+    # and matches central differences; the zero weight's one-sided difference too (h = 1e-5:
+    # the solutions are converged to ~1e-12 relative, so smaller steps see round-off).
+    h = 1e-5
+    with torch.no_grad():
+        fd_scale = (loss_of(weight, scale + h, "none") - loss_of(weight, scale - h, "none")) / (
+            2 * h
+        )
+        step = torch.zeros_like(weight)
+        step[-1] = h
+        fd_weight = (loss_of(weight + step, scale, "none") - loss_of(weight, scale, "none")) / h
+    assert float(grads["implicit"][1]) == pytest.approx(float(fd_scale), rel=1e-3)
+    assert float(grads["implicit"][0][-1]) == pytest.approx(float(fd_weight), rel=1e-3)
+
+
+def test_poses_tied_only_to_each_other_get_one_gauge_held():
+    scene = make_scene(6, 30, seed=0)
+    keep = scene.valid & (scene.pose_index < 4)  # poses 4 and 5 observe nothing
+    T = scene.poses_gt
+
+    def build(terms):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            problem = PointMapProblem(
+                T,
+                scene.points_gt,
+                scene.pose_index,
+                scene.point_index,
+                scene.observations,
+                valid=keep,
+                terms=terms,
+            )
+        return problem, [str(w.message) for w in caught]
+
+    def relative(pairs):
+        pairs = torch.tensor(pairs)
+        return RelativePoseTerm(pairs, T[0, pairs[:, 0]] @ se3.inverse(T[0, pairs[:, 1]]))
+
+    problem, _ = build([])
+    assert problem.data.fixed_poses[0].tolist() == [True, False, False, False, True, True]
+    # 4 — 5 only: a free gauge; pose 4 is held, 5 follows through the term.
+    problem, messages = build([relative([[4, 5]])])
+    assert problem.data.fixed_poses[0].tolist() == [True, False, False, False, True, False]
+    assert any("free gauge" in m and "pose 4 held fixed" in m for m in messages)
+    # 3 — 4 — 5: tied to a well-observed pose, nothing held.
+    problem, messages = build([relative([[3, 4], [4, 5]])])
+    assert problem.data.fixed_poses[0].tolist() == [True] + [False] * 5
+    assert not any("pose" in m and "held fixed" in m for m in messages)
+    # A zero-weight link does not count.
+    zero = RelativePoseTerm(
+        torch.tensor([[3, 4], [4, 5]]),
+        torch.stack((T[0, 3] @ se3.inverse(T[0, 4]), T[0, 4] @ se3.inverse(T[0, 5]))),
+        weight=torch.tensor([0.0, 1.0], dtype=F64),
+    )
+    problem, _ = build([zero])
+    assert problem.data.fixed_poses[0].tolist() == [True, False, False, False, True, False]
+    # A prior anchors its pose.
+    prior = PosePriorTerm(torch.tensor([5]), T[0, 5:6])
+    problem, _ = build([relative([[4, 5]]), prior])
+    assert problem.data.fixed_poses[0].tolist() == [True] + [False] * 5

@@ -25,7 +25,9 @@ is initialized at the identity). Any poses or points can be held fixed.
 Ill-posed parts are never dropped silently. When the problem is built:
 - a point with no valid observation is held fixed (it does not enter the cost);
 - a free pose with fewer than 3 valid observations is held fixed (6 unknowns need ≥ 3 points),
-  unless the extra terms give it ≥ 6 residual rows (e.g. a relative-pose constraint);
+  unless full-rank pose terms (≥ 6 residual entries: relative poses, priors) tie it to an
+  anchor (a fixed pose, a pose with ≥ 3 observations, a prior); a group of such poses tied
+  only to each other has a free gauge, and its first pose is held fixed;
 each with a ``UserWarning`` naming the problem and the index, also listed in ``diagnostics``.
 """
 
@@ -36,6 +38,9 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
 import torch
 from torch import Tensor, nn
 
@@ -205,7 +210,7 @@ class PointMapProblem(nn.Module):
                 fixed_poses,
                 fixed_points,
                 self.diagnostics,
-                _term_rows(terms, B, m, observations),
+                _term_links(terms, B, observations) if terms else None,
             )
 
         # Padding slots may hold any index (e.g. -1); point them at row 0 so that the gathers
@@ -604,11 +609,15 @@ def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) ->
     return tuple(term.bind(B, m, observations) for term in terms)
 
 
-def _term_rows(terms: tuple[Term, ...], B: int, m: int, observations: Tensor) -> Tensor:
-    """Residual rows the terms give each pose, long (B, m) (a pose with ≥ 6 is constrained
-    by them even without 3 point observations)."""
-    rows = torch.zeros(B * m, dtype=torch.long, device=observations.device)
-    batch = torch.arange(B, device=observations.device)[:, None, None]
+def _term_links(terms: tuple[Term, ...], B: int, observations: Tensor) -> list[tuple]:
+    """The terms' full-rank links per problem: [(edges (L, 2), anchors (A,)) for each b].
+
+    An instance links its poses when its residual has ≥ 6 entries and it is valid with a
+    positive weight: a unary one (a prior) anchors its pose, one of arity ≥ 2 joins its poses
+    (a relative pose fixes one pose given the other).
+    """
+    edges = [[] for _ in range(B)]
+    anchors = [[] for _ in range(B)]
     for term in terms:
         if term.num_instances == 0:
             continue
@@ -616,9 +625,65 @@ def _term_rows(terms: tuple[Term, ...], B: int, m: int, observations: Tensor) ->
             se3.identity(1, term.arity, dtype=observations.dtype, device=observations.device),
             **{k: v[:1, :1] for k, v in term.constants.items()},
         ).shape[-1]
-        count = (d * term.valid[..., None]).expand_as(term.pose_index)
-        rows.index_add_(0, (batch * m + term.pose_index).reshape(-1), count.reshape(-1))
-    return rows.reshape(B, m)
+        if d < 6:
+            continue
+        active = term.valid
+        if term.weight is not None:
+            active = active & (term.weight.detach() > 0)
+        index = term.pose_index.cpu()
+        active = active.cpu()
+        for b in range(B):
+            rows = index[b][active[b]]
+            if term.arity == 1:
+                anchors[b].append(rows[:, 0])
+            else:
+                for a in range(1, term.arity):
+                    edges[b].append(rows[:, [0, a]])
+    empty = torch.zeros(0, dtype=torch.long)
+    return [
+        (
+            torch.cat(edges[b]) if edges[b] else empty.reshape(0, 2),
+            torch.cat(anchors[b]) if anchors[b] else empty,
+        )
+        for b in range(B)
+    ]
+
+
+def _unanchored_gauges(
+    links: list[tuple], weak: Tensor, fixed: Tensor, m: int
+) -> tuple[Tensor, list[tuple[int, int, list[int]]]]:
+    """Which weak poses (< 3 observations) the terms make well posed, and which to hold.
+
+    Per problem, the components of the poses joined by full-rank term links: a component
+    with an anchor (a fixed pose, a pose with ≥ 3 observations, a prior) determines all its
+    poses; a component without one has a free gauge, fixed by holding its first weak pose.
+
+    Returns:
+        (still_weak (B, m) bool: weak poses no term constrains, held: [(b, pose, group)] the
+        gauges held fixed with their component's weak poses).
+    """
+    still_weak = weak.clone()
+    held = []
+    for b, (edges, anchors) in enumerate(links):
+        if edges.numel() == 0 and anchors.numel() == 0:
+            continue
+        e = edges.numpy()
+        graph = scipy.sparse.coo_matrix((np.ones(e.shape[0]), (e[:, 0], e[:, 1])), shape=(m, m))
+        _, label = scipy.sparse.csgraph.connected_components(graph, directed=False)
+        label = torch.from_numpy(label).to(weak.device)
+        is_anchor = (~weak[b]) | fixed[b]
+        is_anchor[anchors.to(weak.device)] = True
+        anchored = torch.zeros(m, dtype=torch.bool, device=weak.device)
+        anchored.index_put_((label,), is_anchor, accumulate=True)
+        size = torch.bincount(label, minlength=m)
+        linked = (size[label] > 1) | is_anchor
+        ok = anchored[label] & linked
+        for component in torch.unique(label[weak[b] & linked & ~anchored[label]]).tolist():
+            members = ((label == component) & weak[b]).nonzero().squeeze(1).tolist()
+            held.append((b, members[0], members))
+            ok[label == component] = True
+        still_weak[b] = weak[b] & ~ok
+    return still_weak, held
 
 
 def _hold_ill_posed_fixed(
@@ -629,7 +694,7 @@ def _hold_ill_posed_fixed(
     fixed_poses: Tensor,
     fixed_points: Tensor,
     diagnostics: list[str],
-    term_rows: Tensor | None = None,
+    term_links: list[tuple] | None = None,
 ) -> tuple[Tensor, Tensor]:
     B, m = fixed_poses.shape
     n = fixed_points.shape[1]
@@ -644,10 +709,21 @@ def _hold_ill_posed_fixed(
         0, (batch_offset * n + point_index.clamp(0, n - 1)).reshape(-1), ones.reshape(-1)
     )
     weak_poses = (pose_counts.reshape(B, m) < 3) & ~fixed_poses
-    if term_rows is not None:
-        weak_poses = weak_poses & (term_rows < 6)
+    gauges = []
+    if term_links is not None:
+        weak_poses, gauges = _unanchored_gauges(term_links, weak_poses, fixed_poses, m)
+        for b, i, group in gauges:
+            weak_poses[b, i] = True
+            diagnostics.append(
+                f"problem {b}: poses {group} are tied by relative-pose terms to each other but "
+                f"not to a fixed or well-observed pose (a free gauge); pose {i} held fixed at "
+                "its initial value"
+            )
     unseen_points = (point_counts.reshape(B, n) == 0) & ~fixed_points
+    held = {(b, i) for b, i, _ in gauges}
     for b, i in weak_poses.nonzero().tolist():
+        if (b, i) in held:
+            continue
         diagnostics.append(
             f"problem {b}: pose {i} has {int(pose_counts[b * m + i])} observation(s) (< 3); "
             "held fixed at its initial value"

@@ -69,9 +69,10 @@ class Term:
 
     Args:
         pose_index: poses each instance touches, integer (K, a) or (B, K, a): a = arity.
-        constants: the instances' data, a mapping name → tensor (K, …) or (B, K, …); they are
-            passed to :meth:`residual` by name and may require grad (the differentiable solve
-            carries gradients to them).
+        constants: the instances' data, a mapping name → tensor (K, …) or (B, K, …) with the
+            same leading dims as ``pose_index`` (floating ones in the problem's dtype; integer
+            ones allowed); passed to :meth:`residual` by name. Floating ones may require grad
+            (the differentiable solve carries gradients to them).
         weight: scalar weights w_k ≥ 0, (K,) or (B, K); or
         information: information matrices Ω_k, symmetric positive definite, (K, d, d) or
             (B, K, d, d). Default: unit weights. Not both.
@@ -117,7 +118,7 @@ class Term:
         lead = tuple(pose_index.shape[:-1])
         self.constants = dict(constants or {})
         for name, value in self.constants.items():
-            _checks.check_tensor(fn, name, value)
+            _checks.check_tensor(fn, name, value, floating=False)
             if tuple(value.shape[: len(lead)]) != lead:
                 raise ValueError(
                     f"{fn}: constant '{name}' must have leading shape {lead} (those of "
@@ -197,20 +198,33 @@ class Term:
         return self.pose_index.shape[-2]
 
     def tensors(self) -> dict[str, Tensor]:
-        """The floating tensors the cost depends on (constants, weight, information), by name."""
+        """The floating tensors the cost depends on, by name: ``constants.<name>``, ``weight``,
+        ``information`` and ``loss.<attribute>`` (e.g. a tensor scale of the robust kernel).
+
+        The implicit backward of :func:`torchslam.solve_differentiable` differentiates with
+        respect to exactly these; a tensor a subclass keeps elsewhere is a constant there.
+        """
         out = {f"constants.{k}": v for k, v in self.constants.items() if v.is_floating_point()}
         for name in ("weight", "information"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
+        if self.loss is not None and hasattr(self.loss, "__dict__"):
+            for name, value in vars(self.loss).items():
+                if isinstance(value, Tensor) and value.is_floating_point():
+                    out[f"loss.{name}"] = value
         return out
 
     def replace_tensors(self, tensors: Mapping[str, Tensor]) -> Term:
         """A shallow copy with some of :meth:`tensors` replaced (same names)."""
         new = copy.copy(self)
         new.constants = dict(self.constants)
+        if any(name.startswith("loss.") for name in tensors):
+            new.loss = copy.copy(self.loss)
         for name, value in tensors.items():
             if name.startswith("constants."):
                 new.constants[name[len("constants.") :]] = value
+            elif name.startswith("loss."):
+                setattr(new.loss, name[len("loss.") :], value)
             else:
                 setattr(new, name, value)
         return new
@@ -353,6 +367,12 @@ class RelativePoseTerm(Term):
                 f"{fn}: argument 'pose_index' must have shape (K, 2) or (B, K, 2), "
                 f"got {tuple(pose_index.shape)}"
             )
+        if isinstance(pose_index, Tensor) and measurements.shape[:-2] != pose_index.shape[:-1]:
+            raise ValueError(
+                f"{fn}: argument 'measurements' must have shape {tuple(pose_index.shape[:-1])} "
+                f"+ (4, 4) to match 'pose_index' {tuple(pose_index.shape)}, "
+                f"got {tuple(measurements.shape)}"
+            )
         super().__init__(
             pose_index,
             {"measurements": measurements},
@@ -404,6 +424,11 @@ class PosePriorTerm(Term):
             raise ValueError(
                 f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), "
                 f"got {tuple(pose_index.shape)}"
+            )
+        if measurements.shape[:-2] != pose_index.shape:
+            raise ValueError(
+                f"{fn}: argument 'measurements' must have shape {tuple(pose_index.shape)} "
+                f"+ (4, 4) to match 'pose_index', got {tuple(measurements.shape)}"
             )
         super().__init__(
             pose_index[..., None],

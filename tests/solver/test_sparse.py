@@ -19,7 +19,7 @@ from torchslam.data.loop import make_loop_scene
 from torchslam.data.synthetic import make_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
-from torchslam.solver import linear
+from torchslam.solver import linear, sparse
 from torchslam.solver.differentiable import ImplicitConfig
 from torchslam.solver.linearize import (
     BlockLinearization,
@@ -476,26 +476,39 @@ def test_auto_picks_sparse_for_large_sparse_problems_only():
     assert choose(loop, "auto", 6 * 150 - 1) == "sparse"
     assert choose(loop, "auto", 6 * 150) == "dense"  # small enough for the dense factorization
     assert choose(loop, "auto", SolverConfig().dense_max_variables) == "sparse"
-    # Many views per point (the pair bound Σ c(c+1)/2 exceeds m²/4) but local: the unique
-    # blocks are counted, and S is sparse.
+    # Many views per point, but local: still a band, sparse.
     wide = _loop_problem((12,), num_poses=150, points_per_frame=12, terms=False).data
-    counts = torch.bincount(wide.point_index[wide.valid])
-    assert int((counts * (counts + 1) // 2).sum()) > 150 * 150 // 4
     assert choose(wide, "auto", 6 * 150 - 1) == "sparse"
-    # The same decision from the observation pairs, and dense when there are too many.
-    assert choose(wide, "auto", 6 * 150 - 1, max_incidence=0) == "sparse"
-    assert choose(wide, "auto", 6 * 150 - 1, max_incidence=0, max_pairs=10) == "dense"
+    assert choose(wide, "auto", 6 * 150 - 1, max_pairs=10) == "dense"  # too many pairs to form
     # Dense co-visibility: every point seen by every frame.
     scene = make_scene(200, 30, visible_fraction=1.0, seed=2)
     covisible = PointMapProblem(
         scene.poses_gt, scene.points_gt, scene.pose_index, scene.point_index, scene.observations
     ).data
     assert choose(covisible, "auto", 60) == "dense"
-    assert choose(covisible, "auto", 60, max_incidence=0) == "dense"
+    # Few blocks but in random places: the factor fills in, dense.
+    scattered = make_scene(200, 400, visible_fraction=0.02, seed=3)
+    data = PointMapProblem(
+        scattered.poses_gt,
+        scattered.points_gt,
+        scattered.pose_index,
+        scattered.point_index,
+        scattered.observations,
+    ).data
+    assert choose(data, "auto", 60) == "dense"
     # An explicit choice is kept.
     for data in (loop, covisible):
         assert choose(data, "sparse", 0) == "sparse"
         assert choose(data, "dense", 0) == "dense"
+
+
+def test_factorization_work_of_a_band_and_of_a_dense_pattern():
+    n = 50
+    chain = np.arange(n - 1)
+    # A chain factors without fill: column counts 2 (1 at the end).
+    assert sparse.factorization_work(n, chain, chain + 1, "mmd") == 4.0 * (n - 1) + 1.0
+    i, k = np.triu_indices(n, 1)
+    assert sparse.factorization_work(n, i, k, "mmd") == sum(c * c for c in range(1, n + 1))
 
 
 # ------------------------------------------------------------------------------------------
@@ -578,3 +591,16 @@ def test_config_accepts_every_reduced_solver_and_ordering():
         for ordering in ORDERINGS:
             config = SolverConfig(reduced_solver=reduced, ordering=ordering, dense_max_variables=0)
             assert (config.reduced_solver, config.ordering) == (reduced, ordering)
+
+
+def test_a_non_finite_solution_is_reported_not_ok():
+    A = torch.eye(6, dtype=F64)[None].expand(2, 6, 6) * 2.0
+    pattern, _ = BlockPattern.build(torch.zeros(0, dtype=torch.long), 2, 1)
+    factor = pattern.factor(A.reshape(-1, 6, 6))
+    assert factor.ok.tolist() == [True, True]
+    rhs = torch.ones(2, 6, dtype=F64)
+    rhs[1, 3] = float("nan")
+    x = factor.solve(rhs)
+    assert torch.equal(x[0], torch.full((6,), 0.5, dtype=F64))
+    assert torch.equal(x[1], torch.zeros(6, dtype=F64))
+    assert factor.ok.tolist() == [True, False]

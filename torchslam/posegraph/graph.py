@@ -111,6 +111,8 @@ class PoseGraph:
         g2o's Z_ij ≈ T_i⁻¹ T_j equals T_i0 T_j0⁻¹, the term's measurement, and both residuals
         are Log(Z_ij⁻¹ T_i⁻¹ T_j): the same cost, so a pose graph can join point observations
         in one :class:`torchslam.PointMapProblem` (with :meth:`frame_poses` as its poses).
+        The file's ``FIX`` vertices are not carried: pass them as ``fixed_poses`` (the
+        problem fixes pose 0 by default).
         """
         return RelativePoseTerm(self.edges, self.measurements, information=self.information)
 

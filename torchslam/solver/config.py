@@ -47,7 +47,8 @@ class SolverConfig:
     # Cholesky, any device, differentiable), "sparse" (SciPy SuperLU with a fill-reducing
     # ordering, :mod:`torchslam.solver.sparse`; for hundreds to thousands of poses with local
     # co-visibility and relative-pose terms) or "auto": sparse when 6m > dense_max_variables
-    # and S has at most m²/4 nonzero 6 × 6 blocks (linear.choose_reduced_solver).
+    # and the symbolic factorization of S's block pattern predicts far less work than dense
+    # (linear.choose_reduced_solver).
     reduced_solver: Literal["auto", "dense", "sparse"] = "auto"
     # Largest reduced system 6m that "auto" always factors densely.
     dense_max_variables: int = 600

@@ -73,8 +73,11 @@ class TermLinearization:
     # J̃_aᵀJ̃_b for a ≠ b of every instance of every term, (B, P, 6, 6), in the order of
     # :func:`term_pair_keys`.
     pair_blocks: Tensor
-    # Whitened, robustified blocks J̃ of each term, (B, K_t, d_t, a_t, 6) (model decrease).
+    # Robustified blocks J of each term, (B, K_t, d_t, a_t, 6), whitened by U for information
+    # matrices; with scalar weights w they are not whitened (no √w: its derivative is
+    # infinite at w = 0) and ``scales`` holds w, (B, K_t) (ones otherwise): J̃ᵀJ̃ = w JᵀJ.
     jacobians: tuple[Tensor, ...]
+    scales: tuple[Tensor, ...]
 
 
 @dataclass
@@ -342,22 +345,25 @@ def linearize_terms(poses: Tensor, data: PointMapData, jacobian_mode: str) -> Te
     cost = poses.new_zeros(B)
     gradient = poses.new_zeros(B * m, 6)
     diagonal = poses.new_zeros(B * m, 6, 6)
-    pairs, jacobians = [], []
+    pairs, jacobians, scales = [], [], []
     batch = torch.arange(B, device=poses.device)[:, None, None]
     for term in data.terms:
         r, J = term_jacobians(term, term_poses(term, poses), jacobian_mode)
         slots = batch * m + term.pose_index  # (B, K, a)
         free = ~data.fixed_poses.reshape(-1)[slots]
-        rw, Jw = _whitened_term(term, r, J * free[:, :, None, :, None])
-        term_cost, rw, Jw = _robustified(term, rw, Jw)
+        rw, Jw, scale = _whitened_term(term, r, J * free[:, :, None, :, None])
+        term_cost, rw, Jw = _robustified(term, rw, Jw, scale)
         cost = cost + term_cost
         jacobians.append(Jw)
+        scales.append(scale)
         a = term.arity
         K = r.shape[1]
         Jt = Jw.transpose(-3, -2)  # (B, K, a, d, 6)
         g = (Jt.transpose(-1, -2) @ rw[:, :, None, :, None])[..., 0]  # (B, K, a, 6)
+        g = scale[:, :, None, None] * g
         gradient.index_add_(0, slots.reshape(-1), g.reshape(-1, 6))
         H = Jt[:, :, :, None].transpose(-1, -2) @ Jt[:, :, None, :]  # (B, K, a, a, 6, 6)
+        H = scale[:, :, None, None, None, None] * H
         idx = torch.arange(a, device=poses.device)
         diagonal.index_add_(0, slots.reshape(-1), H[:, :, idx, idx].reshape(-1, 6, 6))
         for i in range(a):
@@ -371,40 +377,47 @@ def linearize_terms(poses: Tensor, data: PointMapData, jacobian_mode: str) -> Te
         diagonal=diagonal.reshape(B, m, 6, 6),
         pair_blocks=pair_blocks,
         jacobians=tuple(jacobians),
+        scales=tuple(scales),
     )
 
 
-def _whitened_term(term: Term, r: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:
-    """U r and U J (J (B, K, d, a, 6)), zero on padding."""
-    factor = term_whitening(term)
-    if factor is None:
-        rw, Jw = r, J
-    elif factor.dim() == 2:
-        rw, Jw = factor[..., None] * r, factor[..., None, None, None] * J
-    else:
-        rw = (factor @ r[..., None])[..., 0]
-        Jw = (factor @ J.flatten(-2)).reshape(J.shape)
+def _whitened_term(term: Term, r: Tensor, J: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(U r, U J, ones) for information matrices, (r, J, w) for scalar weights, (r, J, ones)
+    otherwise (J (B, K, d, a, 6)); zero on padding."""
+    scale = torch.ones_like(r[..., 0])
+    if term.information is not None:
+        U = term_whitening(term)
+        r = (U @ r[..., None])[..., 0]
+        J = (U @ J.flatten(-2)).reshape(J.shape)
+    elif term.weight is not None:
+        scale = term.weight
     valid = term.valid
     return (
-        torch.where(valid[..., None], rw, torch.zeros_like(rw)),
-        torch.where(valid[..., None, None, None], Jw, torch.zeros_like(Jw)),
+        torch.where(valid[..., None], r, torch.zeros_like(r)),
+        torch.where(valid[..., None, None, None], J, torch.zeros_like(J)),
+        torch.where(valid, scale, torch.zeros_like(scale)),
     )
 
 
-def _robustified(term: Term, rw: Tensor, Jw: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(cost (B,), r̃, J̃): ½ Σ ρ(|U r|²) and Ceres' robust correction of r and J."""
-    s = (rw * rw).sum(-1)
+def _robustified(
+    term: Term, rw: Tensor, Jw: Tensor, scale: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """(cost (B,), r̃, J̃): ½ Σ ρ(s), s = w |U r|², and Ceres' corrector of r and J.
+
+    The corrector is applied to the unscaled r, J: with r̂ = r/|r| it needs only
+    α r̂ r̂ᵀ = (α/s)·w·r rᵀ, so no √w appears; the products are multiplied by w afterwards.
+    """
+    s = scale * (rw * rw).sum(-1)
     if term.loss is None:
         return 0.5 * s.sum(-1), rw, Jw
     rho, rho1, rho2 = term.loss(s)
     cost = 0.5 * torch.where(term.valid, rho, torch.zeros_like(rho)).sum(-1)
-    scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
+    residual_scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
     shape = Jw.shape
     Jf = Jw.flatten(-2)  # (B, K, d, a·6)
-    Jf = torch.sqrt(rho1)[..., None, None] * (
-        Jf - alpha_over_s[..., None, None] * rw[..., :, None] * (rw[..., None, :] @ Jf)
-    )
-    rw = scale[..., None] * rw
+    projector = (alpha_over_s * scale)[..., None, None] * rw[..., :, None]
+    Jf = torch.sqrt(rho1)[..., None, None] * (Jf - projector * (rw[..., None, :] @ Jf))
+    rw = residual_scale[..., None] * rw
     valid = term.valid
     return (
         cost,
@@ -456,8 +469,9 @@ def model_decrease(
     if lin.terms is not None:
         B, m = dp.shape[:2]
         batch = torch.arange(B, device=dp.device)[:, None, None]
-        for term, J in zip(data.terms, lin.terms.jacobians, strict=True):
+        for term, J, scale in zip(data.terms, lin.terms.jacobians, lin.terms.scales, strict=True):
+            K, a = term.pose_index.shape[1:]
             d_term = dp.reshape(B * m, 6)[(batch * m + term.pose_index).reshape(-1)]
-            Jd = (J.flatten(-2) @ d_term.reshape(*term.pose_index.shape[:2], -1, 1))[..., 0]
-            quad = quad + (Jd * Jd).sum((-1, -2))
+            Jd = (J.flatten(-2) @ d_term.reshape(B, K, a * 6, 1))[..., 0]
+            quad = quad + (scale * (Jd * Jd).sum(-1)).sum(-1)
     return -(g_dot + 0.5 * quad)

@@ -133,7 +133,9 @@ def sparse_schur(data: PointMapData, config: SolverConfig) -> linear.SparseSchur
     and pattern) asks for the sparse factorization; None for the dense one."""
     if config.linear_solver != "schur" or config.algorithm == "gradient_descent":
         return None
-    choice = linear.choose_reduced_solver(data, config.reduced_solver, config.dense_max_variables)
+    choice = linear.choose_reduced_solver(
+        data, config.reduced_solver, config.dense_max_variables, config.ordering
+    )
     if choice == "dense":
         return None
     return linear.SparseSchur.build(data, ordering=config.ordering)

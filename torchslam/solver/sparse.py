@@ -35,7 +35,7 @@ import scipy.sparse.linalg
 import torch
 from torch import Tensor
 
-__all__ = ["BlockPattern", "SparseFactor", "fill_reducing_order"]
+__all__ = ["BlockPattern", "SparseFactor", "factorization_work", "fill_reducing_order"]
 
 # SuperLU's names of the orderings, applied to the block graph.
 PERMC_SPEC = {"mmd": "MMD_AT_PLUS_A", "colamd": "COLAMD", "natural": "NATURAL"}
@@ -64,6 +64,23 @@ def fill_reducing_order(n: int, first: np.ndarray, second: np.ndarray, ordering:
         options={"SymmetricMode": True},
     )
     return np.asarray(lu.perm_c)
+
+
+def factorization_work(n: int, first: np.ndarray, second: np.ndarray, ordering: str) -> float:
+    """Σ_j c_j², c_j the entries of column j of the Cholesky factor of an n-block pattern with
+    edges (first[e], second[e]) in the fill-reducing order: proportional to the flops of its
+    sparse factorization (a dense one: Σ_j (n − j)² ≈ n³/3)."""
+    order = fill_reducing_order(n, first, second, ordering)
+    both = (first >= 0) & (second >= 0) & (first != second)
+    r = np.concatenate((np.arange(n), order[first[both]], order[second[both]]))
+    c = np.concatenate((np.arange(n), order[second[both]], order[first[both]]))
+    values = np.where(r == c, 4.0 * n, -1.0)
+    pattern = scipy.sparse.csc_matrix((values, (r, c)), shape=(n, n))
+    lu = scipy.sparse.linalg.splu(
+        pattern, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+    )
+    counts = np.diff(lu.L.indptr).astype(np.float64)
+    return float((counts * counts).sum())
 
 
 @dataclass
@@ -184,7 +201,8 @@ class SparseFactor:
         return torch.tensor([f is not None for f in self.factors], device=self.device)
 
     def solve(self, rhs: Tensor) -> Tensor:
-        """x with S x = rhs for each problem, rhs (B, 6m) → (B, 6m); zeros where not ok."""
+        """x with S x = rhs for each problem, rhs (B, 6m) → (B, 6m); zeros where not ok (a
+        non-finite solution marks its problem not ok from then on)."""
         b_np = rhs.detach().cpu().numpy()
         out = np.zeros_like(b_np)
         for b, (layout, lu) in enumerate(zip(self.layouts, self.factors, strict=True)):
@@ -195,4 +213,6 @@ class SparseFactor:
             x = lu.solve(permuted)
             if np.isfinite(x).all():
                 out[b] = x[layout.position]
+            else:  # report it: the problem's factorization is unusable
+                self.factors[b] = None
         return torch.from_numpy(out).to(device=self.device, dtype=self.dtype)
