@@ -822,3 +822,41 @@ def test_float32_residuals_and_cost_match_float64():
     torch.testing.assert_close(
         p32.cost().double(), p64.cost(), atol=0, rtol=TOL[torch.float32] * scale
     )
+
+
+def test_to_casts_the_data_terms_and_losses_with_the_parameters():
+    import torchslam as ts
+
+    scene = ts.data.make_scene(5, 30, seed=0)
+    T = scene.poses_gt
+    term = ts.RelativePoseTerm(
+        torch.tensor([[0, 1]]),
+        T[0, :1] @ ts.se3.inverse(T[0, 1:2]),
+        loss=ts.HuberLoss(torch.tensor(0.1, dtype=torch.float64)),
+    )
+    problem = ts.PointMapProblem(
+        T,
+        scene.points_gt,
+        scene.pose_index,
+        scene.point_index,
+        scene.observations,
+        valid=scene.valid,
+        terms=[term],
+        loss=ts.HuberLoss(torch.tensor(0.05, dtype=torch.float64)),
+    )
+    cost64 = problem.cost().detach()
+    assert problem.float() is problem
+    data = problem.data
+    assert problem.pose_tangent.dtype == torch.float32
+    assert data.observations.dtype == torch.float32
+    assert data.loss.scale.dtype == torch.float32
+    assert data.terms[0].constants["measurements"].dtype == torch.float32
+    assert data.terms[0].loss.scale.dtype == torch.float32
+    assert data.pose_index.dtype == torch.int64 and data.valid.dtype == torch.bool
+    # The user's loss objects are not modified (copies are cast).
+    assert term.loss.scale.dtype == torch.float64
+    torch.testing.assert_close(problem.cost().detach(), cost64.float(), rtol=1e-5, atol=1e-6)
+    problem.double().to("cpu")
+    assert problem.data.observations.dtype == torch.float64
+    # Back in float64 with the float32-rounded values: equal to float32 precision.
+    torch.testing.assert_close(problem.cost().detach(), cost64, rtol=1e-5, atol=1e-6)

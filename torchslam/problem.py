@@ -33,6 +33,8 @@ each with a ``UserWarning`` naming the problem and the index, also listed in ``d
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import functools
 import warnings
 from collections.abc import Sequence
@@ -115,6 +117,18 @@ class PointMapData:
             v = torch.sqrt(self.weights)[..., None, None] * v
         v = v * self.valid[..., None, None]
         return v[..., 0] if column else v
+
+    def apply(self, fn) -> PointMapData:
+        """A copy with ``fn`` applied to every tensor (observations, indices, masks, weights,
+        the loss's and the terms' tensors): what ``problem.to(...)``/``.double()`` use."""
+        changes = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, Tensor):
+                changes[field.name] = fn(value)
+        changes["loss"] = _apply_to_attributes(self.loss, fn)
+        changes["terms"] = tuple(term.apply(fn) for term in self.terms)
+        return dataclasses.replace(self, **changes)
 
     def squared_norms(self, raw_residuals: Tensor) -> Tensor:
         """s_e = r_eᵀ Ω_e r_e, (B, E); exactly 0 on padding. No square root, so gradients
@@ -231,6 +245,13 @@ class PointMapProblem(nn.Module):
             loss=loss,
             terms=terms,
         )
+
+    def _apply(self, fn, recurse: bool = True):
+        # nn.Module.to / .double() / .cuda() reach the parameters through _apply; the data is
+        # not a buffer (a dataclass), so move it here too.
+        super()._apply(fn, recurse)
+        self.data = self.data.apply(fn)
+        return self
 
     # ----------------------------------------------------------------------------------------
     # Constructors
@@ -592,6 +613,20 @@ def _check_observations(
             f"observation {e} (pose {int(pose_index[b, e])}, point {int(point_index[b, e])}); "
             "remove it or mark it invalid with 'valid'"
         )
+
+
+def _apply_to_attributes(obj: object, fn) -> object:
+    """A shallow copy of ``obj`` (e.g. a robust loss) with ``fn`` applied to its tensor
+    attributes; ``obj`` itself when it has none."""
+    if obj is None or not hasattr(obj, "__dict__"):
+        return obj
+    tensors = {k: v for k, v in vars(obj).items() if isinstance(v, Tensor)}
+    if not tensors:
+        return obj
+    new = copy.copy(obj)
+    for name, value in tensors.items():
+        setattr(new, name, fn(value))
+    return new
 
 
 def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) -> tuple[Term, ...]:

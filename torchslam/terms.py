@@ -229,6 +229,23 @@ class Term:
                 setattr(new, name, value)
         return new
 
+    def apply(self, fn) -> Term:
+        """A shallow copy with ``fn`` applied to every tensor (indices, mask, constants,
+        weight, information, the loss's tensor attributes): moves or casts the term."""
+        new = copy.copy(self)
+        new.pose_index = fn(self.pose_index)
+        new.valid = fn(self.valid)
+        new.constants = {k: fn(v) for k, v in self.constants.items()}
+        new.weight = None if self.weight is None else fn(self.weight)
+        new.information = None if self.information is None else fn(self.information)
+        if self.loss is not None and hasattr(self.loss, "__dict__"):
+            tensors = {k: v for k, v in vars(self.loss).items() if isinstance(v, Tensor)}
+            if tensors:
+                new.loss = copy.copy(self.loss)
+                for name, value in tensors.items():
+                    setattr(new.loss, name, fn(value))
+        return new
+
     def bind(self, batch_size: int, num_poses: int, like: Tensor) -> Term:
         """A copy with every tensor expanded to batch ``batch_size``, checked against a problem
         of ``num_poses`` poses whose floating tensors are like ``like`` (dtype, device)."""
