@@ -255,17 +255,17 @@ def test_information_matrices_implicit_equals_unrolled():
     assert _relative(implicit, unrolled) <= 1e-6
 
 
-def test_implicit_backward_with_the_dense_solver():
-    # The dense linear solver is a cross-check of the Schur path, in the backward too; the
-    # unrolled mode cannot use it (autograd refuses its view writes) and says so.
+def test_implicit_and_unrolled_backward_with_the_dense_solver():
+    # The dense linear solver is a cross-check of the Schur path, in the backward too.
     scene, init, weights = _setup(outlier_fraction=0.05)
     weights.requires_grad_(True)
     problem = _problem(scene, init, scene.observations, weights, HuberLoss(HUBER_SCALE))
     dense = SolverConfig(linear_solver="dense", function_tolerance=1e-14, gradient_tolerance=1e-14)
     schur = _gradients(problem, [weights], "implicit")[0]
     assert _relative(_gradients(problem, [weights], "implicit", dense)[0], schur) <= 1e-9
-    with pytest.raises(ValueError, match="needs linear_solver='schur'"):
-        _gradients(problem, [weights], "unrolled", dense)
+    unrolled_schur = _gradients(problem, [weights], "unrolled")[0]
+    unrolled_dense = _gradients(problem, [weights], "unrolled", dense)[0]
+    assert _relative(unrolled_dense, unrolled_schur) <= 1e-8
 
 
 def test_gradients_reach_a_weight_model():

@@ -171,13 +171,6 @@ def solve_differentiable(
     if truncate_steps < 1:
         raise ValueError(f"{fn}: 'truncate_steps' must be ≥ 1, got {truncate_steps}")
     config = config or SolverConfig()
-    if backward in ("unrolled", "truncated") and config.linear_solver == "dense":
-        # solve_dense writes its blocks through views made before the first write, which
-        # autograd refuses; the Schur path (the default) is differentiable.
-        raise ValueError(
-            f"{fn}: backward={backward!r} needs linear_solver='schur', got 'dense' "
-            "(use the Schur solver or backward='implicit')"
-        )
     if backward in ("unrolled", "truncated"):
         if config.reduced_solver == "sparse":
             # SciPy's factorization is outside autograd; the batched Cholesky is not.

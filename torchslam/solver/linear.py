@@ -526,28 +526,39 @@ def _factorize_schur(
 def _factorize_dense(
     lin: BlockLinearization, data: PointMapData, lam: Tensor, damping: str
 ) -> Factorization:
-    """The full (6m + 3n)² system — small problems and cross-checks only."""
+    """The full (6m + 3n)² system — small problems and cross-checks only.
+
+    Assembled by out-of-place ``index_put`` (no writes through views), so autograd can
+    differentiate through it (the unrolled backward).
+    """
     B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     N = 6 * m + 3 * n
-    H = lin.coupling.new_zeros(B, N, N)
+    device = lin.coupling.device
     U = damp(lin.pose_blocks, lam, damping)
     V = damp(lin.point_blocks, lam, damping)
-    Hb = torch.arange(B, device=H.device)
-    H_poses = H[:, : 6 * m, : 6 * m].view(B, m, 6, m, 6)
-    H_points = H[:, 6 * m :, 6 * m :].view(B, n, 3, n, 3)
-    i, j = torch.arange(m, device=H.device), torch.arange(n, device=H.device)
-    H_poses[:, i, :, i, :] = U.transpose(0, 1)
-    H_points[:, j, :, j, :] = V.transpose(0, 1)
-    rows = 6 * data.pose_index[..., None, None] + torch.arange(6, device=H.device)[:, None]
-    cols = 6 * m + 3 * data.point_index[..., None, None] + torch.arange(3, device=H.device)
+
+    def block_indices(count: int, offset: int, size: int) -> tuple[Tensor, Tensor, Tensor]:
+        """(batch, row, col) of the size × size diagonal blocks, (B, count, size, size)."""
+        a = torch.arange(size, device=device)
+        start = offset + size * torch.arange(count, device=device)[:, None, None]
+        rows = (start + a[:, None]).expand(count, size, size)
+        cols = (start + a[None, :]).expand(count, size, size)
+        batch = torch.arange(B, device=device)[:, None, None, None]
+        return torch.broadcast_tensors(batch, rows[None], cols[None])
+
+    H = lin.coupling.new_zeros(B, N, N)
+    H = H.index_put(block_indices(m, 0, 6), U)
+    H = H.index_put(block_indices(n, 6 * m, 3), V)
+    rows = 6 * data.pose_index[..., None, None] + torch.arange(6, device=device)[:, None]
+    cols = 6 * m + 3 * data.point_index[..., None, None] + torch.arange(3, device=device)
     rows, cols = torch.broadcast_tensors(rows, cols)  # (B, E, 6, 3)
-    bidx = Hb[:, None, None, None].expand_as(rows)
-    H.index_put_((bidx, rows, cols), lin.coupling, accumulate=True)
-    H.index_put_((bidx, cols, rows), lin.coupling, accumulate=True)
+    bidx = torch.arange(B, device=device)[:, None, None, None].expand_as(rows)
+    H = H.index_put((bidx, rows, cols), lin.coupling, accumulate=True)
+    H = H.index_put((bidx, cols, rows), lin.coupling, accumulate=True)
     pairs = term_pair_matrix(lin, data)
     if pairs is not None:
-        H[:, : 6 * m, : 6 * m] += pairs
+        H = H + torch.nn.functional.pad(pairs, (0, 3 * n, 0, 3 * n))
     full = _DenseCholesky.of(H)
 
     def solve(pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
