@@ -293,3 +293,25 @@ def test_one_gauss_newton_iteration_is_the_seed_step_on_the_manifold(weighting):
         torch.testing.assert_close(result.poses[b], poses, rtol=0, atol=1e-10)
         torch.testing.assert_close(result.points[b], points, rtol=0, atol=1e-10)
         assert float(delta.abs().max()) > 1e-2
+
+
+@pytest.mark.parametrize("entries", [10 * 12 * 3 * 7, 10 * 12 * 3])
+def test_structured_schur_chunked_over_points_equals_one_chunk(monkeypatch, entries):
+    # Chunks of 7 points and of 1 point (memory cap) give the step of the single GEMM.
+    from torchslam.solver.linearize import linearize
+
+    scene = torchslam.data.make_scene(12, 300, batch_size=3, seed=1, noise_std=0.01)
+    generator = torch.Generator().manual_seed(0)
+    noise = 0.02 * torch.randn(3, 12, 6, dtype=torch.float64, generator=generator)
+    problem = torchslam.PointMapProblem.from_scene(
+        scene, scene.poses_gt @ torchslam.se3.exp(noise), scene.points_gt + 0.01
+    )
+    data = problem.data
+    lin = linearize(problem.pose_tangent.detach(), problem.points.detach(), data, None)
+    lam = torch.full((3,), 1e-3, dtype=torch.float64)
+    reference = linear.solve_step(lin, data, None, lam, "marquardt")
+    monkeypatch.setattr(linear, "STRUCTURED_CHUNK_ENTRIES", entries)
+    chunked = linear.solve_step(lin, data, None, lam, "marquardt")
+    assert chunked[2].all()
+    torch.testing.assert_close(chunked[0], reference[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(chunked[1], reference[1], rtol=0, atol=1e-12)

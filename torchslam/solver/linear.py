@@ -363,6 +363,46 @@ def solve_dense(
     return solve_step(lin, data, None, lam, damping, "dense")
 
 
+# Entries of the (B, 10·m, c) buffer of one chunk of c points in _monomial_products.
+STRUCTURED_CHUNK_ENTRIES = 1 << 24
+
+
+def _monomial_products(lin: StructuredLinearization, data: PointMapData, v_d: Tensor) -> Tensor:
+    """C_f = A·diag(f/v)·Aᵀ for the 10 monomials f, stacked as (B, 10·m, m) (doc of
+    :func:`_factorize_structured`), by one batched GEMM per chunk of points.
+
+    A (B, m, c) holds the coupling weights of a chunk of c points, built from the chunk's
+    observations; c is chosen so that the (B, 10·m, c) product buffer stays within
+    ``STRUCTURED_CHUNK_ENTRIES`` (one chunk for the benchmark cases), so memory is
+    O(B·m·c + B·m²), not O(B·m·n).
+    """
+    B = data.pose_index.shape[0]
+    m, n = data.num_poses, data.num_points
+    batch = torch.arange(B, device=v_d.device)[:, None]
+    # (B, 10, n), contiguous so that the broadcast product below comes out contiguous.
+    F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
+    chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 10 * m)))
+    C = v_d.new_zeros(B, 10 * m, m)
+    weight = lin.coupling_weight
+    for start in range(0, n, chunk):
+        c = min(chunk, n - start)
+        if c == n:
+            inside, local = torch.ones_like(data.valid), data.point_index
+        else:
+            inside = (data.point_index >= start) & (data.point_index < start + c)
+            local = (data.point_index - start).clamp(0, c - 1)
+        A = v_d.new_zeros(B * m * c).index_add_(
+            0,
+            ((batch * m + data.pose_index) * c + local).reshape(-1),
+            torch.where(inside, weight, torch.zeros_like(weight)).reshape(-1),
+        )
+        A = A.reshape(B, m, c)
+        # (A diag(f/v))_f for the 10 monomials f, stacked as (B, 10·m, c), times Aᵀ.
+        AF = (A[:, None] * F[:, :, None, start : start + c]).reshape(B, 10 * m, c)
+        C = C.baddbmm(AF, A.transpose(1, 2)) if c != n else torch.bmm(AF, A.transpose(1, 2))
+    return C
+
+
 def _factorize_structured(
     lin: StructuredLinearization,
     data: PointMapData,
@@ -378,8 +418,8 @@ def _factorize_structured(
 
     a_ij the coupling weight of the observation of point j in frame i (0 if none). Densely,
     each of the 10 monomial coefficients of G_jᵀ G_j is one product A·diag(f/v)·Aᵀ, all
-    computed by a single batched GEMM of (m × n) by (n × 10m): 20·m²·n flops per problem, no
-    per-pair products; the (m × n) matrix A of coupling weights is the only O(m·n) buffer.
+    computed by one batched GEMM of (m × n) by (n × 10m): 20·m²·n flops per problem, no
+    per-pair products (chunked over the points when the (10m × n) buffer would be large).
     Sparsely, each observation pair (a, b) of point j adds the 10 monomials of X_j times
     −a_a a_b / v_j to its block of the pattern (twice for a ≠ b in one pose: the pair and its
     mirror), and the blocks are formed once per unique block.
@@ -394,20 +434,7 @@ def _factorize_structured(
         v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
     batch = torch.arange(B, device=v.device)[:, None]
     if sparse is None:
-        A = (
-            v.new_zeros(B * m * n)
-            .index_add_(
-                0,
-                ((batch * m + data.pose_index) * n + data.point_index).reshape(-1),
-                lin.coupling_weight.reshape(-1),
-            )
-            .reshape(B, m, n)
-        )
-        # (B, 10, n), contiguous so that the broadcast product below comes out contiguous.
-        F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
-        # (A diag(f/v))_f for the 10 monomials f, stacked as (B, 10·m, n), times Aᵀ.
-        AF = (A[:, None] * F[:, :, None, :]).view(B, 10 * m, n)
-        C = torch.bmm(AF, A.transpose(1, 2)).reshape(B, 10, m, m)
+        C = _monomial_products(lin, data, v_d).reshape(B, 10, m, m)
         S = -blocks_from_monomials(C.permute(0, 2, 3, 1))  # (B, m, m, 6, 6)
         idx = torch.arange(m, device=S.device)
         S[:, idx, idx] += U
