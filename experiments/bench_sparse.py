@@ -32,6 +32,7 @@ Run from the repository root (writes out/bench_sparse.json):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import platform
@@ -186,6 +187,43 @@ def _warm_up() -> None:
         run_solve(problem, reduced, 2)
 
 
+def implicit_timings(
+    num_poses: int, points_per_frame: int, window: int, points: str, seed: int, reduced: str
+) -> dict:
+    """Forward solve and implicit backward (both Hessian options) of a loss on the solved
+    positions w.r.t. the odometry measurements and the observations."""
+    out = {"num_poses": num_poses, "reduced_solver": reduced}
+    for hessian in ("gauss_newton", "exact"):
+        problem = build_problem(num_poses, points_per_frame, window, points, seed)
+        data = problem.data
+        odometry = data.terms[0].constants["measurements"].detach().requires_grad_(True)
+        observations = data.observations.detach().requires_grad_(True)
+        terms = (data.terms[0].replace_tensors({"constants.measurements": odometry}),)
+        data = dataclasses.replace(data, observations=observations, terms=terms + data.terms[1:])
+        config = SolverConfig(reduced_solver=reduced, max_iterations=300)
+        start = time.perf_counter()
+        result = torchslam.solve_differentiable(
+            problem.pose_tangent.detach(),
+            problem.points.detach(),
+            data,
+            config,
+            implicit=torchslam.ImplicitConfig(hessian=hessian),
+        )
+        forward = time.perf_counter() - start
+        loss = (result.poses[..., :3, 3] ** 2).sum()
+        start = time.perf_counter()
+        g_odometry, g_observations = torch.autograd.grad(loss, (odometry, observations))
+        backward = time.perf_counter() - start
+        out[hessian] = {
+            "forward_seconds": forward,
+            "backward_seconds": backward,
+            "gradient_norm": float(
+                torch.sqrt(g_odometry.square().sum() + g_observations.square().sum())
+            ),
+        }
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, nargs="+", default=[100, 250, 500, 1000, 2500])
@@ -204,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="sparse factorizations timed")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1)")
+    parser.add_argument(
+        "--implicit-poses", type=int, default=500, help="m of the implicit-backward timing"
+    )
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -276,6 +317,27 @@ def main(argv: list[str] | None = None) -> int:
         f"{factor['sparse_relative_residual']:.1e}"
     )
 
+    print(f"\nimplicit backward (solve_differentiable) at m = {args.implicit_poses}:")
+    implicit = [
+        implicit_timings(
+            args.implicit_poses,
+            args.points_per_frame,
+            args.window,
+            args.points,
+            args.seed,
+            reduced,
+        )
+        for reduced in ("sparse", "dense")
+    ]
+    for row in implicit:
+        for hessian in ("gauss_newton", "exact"):
+            t = row[hessian]
+            print(
+                f"  {row['reduced_solver']:>6} {hessian:>12}: "
+                f"forward {t['forward_seconds']:.2f} s, backward {t['backward_seconds']:.2f} s, "
+                f"|gradient| {t['gradient_norm']:.10g}"
+            )
+
     report = {
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "torch_threads": torch.get_num_threads(),
@@ -284,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
         "platform": platform.platform(),
         "solves": rows,
         "factorization": factor,
+        "implicit": implicit,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2, allow_nan=True))
