@@ -20,6 +20,7 @@ synthesis", §4.3, as in Ceres' ``Corrector``).
 from __future__ import annotations
 
 import abc
+import copy
 import math
 
 import torch
@@ -33,8 +34,33 @@ __all__ = [
     "RobustLoss",
     "TrivialLoss",
     "TukeyLoss",
+    "tensor_attributes",
     "triggs_correction",
+    "with_tensor_attributes",
 ]
+
+
+def tensor_attributes(loss: object, floating: bool = True) -> dict[str, Tensor]:
+    """The tensor attributes of a loss by name (e.g. a tensor ``scale``), floating-point ones
+    only by default: what a differentiable solve carries gradients to, or moves and casts."""
+    if loss is None or not hasattr(loss, "__dict__"):
+        return {}
+    return {
+        name: value
+        for name, value in vars(loss).items()
+        if isinstance(value, Tensor) and (value.is_floating_point() or not floating)
+    }
+
+
+def with_tensor_attributes(loss: object, values: dict[str, Tensor]) -> object:
+    """A shallow copy of ``loss`` with the given tensor attributes replaced (``loss`` itself
+    when there is nothing to replace); the caller's object is never modified."""
+    if not values:
+        return loss
+    new = copy.copy(loss)
+    for name, value in values.items():
+        setattr(new, name, value)
+    return new
 
 
 def _check_s(fn: str, s: object) -> Tensor:

@@ -33,7 +33,6 @@ each with a ``UserWarning`` naming the problem and the index, also listed in ``d
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import warnings
@@ -46,7 +45,7 @@ import scipy.sparse.csgraph
 import torch
 from torch import Tensor, nn
 
-from torchslam import _checks, jacobians
+from torchslam import _checks, jacobians, losses
 from torchslam.lie import se3
 from torchslam.terms import Term, terms_cost
 
@@ -126,7 +125,8 @@ class PointMapData:
             value = getattr(self, field.name)
             if isinstance(value, Tensor):
                 changes[field.name] = fn(value)
-        changes["loss"] = _apply_to_attributes(self.loss, fn)
+        moved = {k: fn(v) for k, v in losses.tensor_attributes(self.loss, False).items()}
+        changes["loss"] = losses.with_tensor_attributes(self.loss, moved)
         changes["terms"] = tuple(term.apply(fn) for term in self.terms)
         return dataclasses.replace(self, **changes)
 
@@ -613,20 +613,6 @@ def _check_observations(
             f"observation {e} (pose {int(pose_index[b, e])}, point {int(point_index[b, e])}); "
             "remove it or mark it invalid with 'valid'"
         )
-
-
-def _apply_to_attributes(obj: object, fn) -> object:
-    """A shallow copy of ``obj`` (e.g. a robust loss) with ``fn`` applied to its tensor
-    attributes; ``obj`` itself when it has none."""
-    if obj is None or not hasattr(obj, "__dict__"):
-        return obj
-    tensors = {k: v for k, v in vars(obj).items() if isinstance(v, Tensor)}
-    if not tensors:
-        return obj
-    new = copy.copy(obj)
-    for name, value in tensors.items():
-        setattr(new, name, fn(value))
-    return new
 
 
 def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) -> tuple[Term, ...]:

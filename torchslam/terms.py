@@ -48,7 +48,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from torchslam import _checks
+from torchslam import _checks, losses
 from torchslam.lie import se3
 
 __all__ = [
@@ -208,25 +208,23 @@ class Term:
         for name in ("weight", "information"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
-        if self.loss is not None and hasattr(self.loss, "__dict__"):
-            for name, value in vars(self.loss).items():
-                if isinstance(value, Tensor) and value.is_floating_point():
-                    out[f"loss.{name}"] = value
+        for name, value in losses.tensor_attributes(self.loss).items():
+            out[f"loss.{name}"] = value
         return out
 
     def replace_tensors(self, tensors: Mapping[str, Tensor]) -> Term:
         """A shallow copy with some of :meth:`tensors` replaced (same names)."""
         new = copy.copy(self)
         new.constants = dict(self.constants)
-        if any(name.startswith("loss.") for name in tensors):
-            new.loss = copy.copy(self.loss)
+        loss_values = {}
         for name, value in tensors.items():
             if name.startswith("constants."):
                 new.constants[name[len("constants.") :]] = value
             elif name.startswith("loss."):
-                setattr(new.loss, name[len("loss.") :], value)
+                loss_values[name[len("loss.") :]] = value
             else:
                 setattr(new, name, value)
+        new.loss = losses.with_tensor_attributes(self.loss, loss_values)
         return new
 
     def apply(self, fn) -> Term:
@@ -238,12 +236,8 @@ class Term:
         new.constants = {k: fn(v) for k, v in self.constants.items()}
         new.weight = None if self.weight is None else fn(self.weight)
         new.information = None if self.information is None else fn(self.information)
-        if self.loss is not None and hasattr(self.loss, "__dict__"):
-            tensors = {k: v for k, v in vars(self.loss).items() if isinstance(v, Tensor)}
-            if tensors:
-                new.loss = copy.copy(self.loss)
-                for name, value in tensors.items():
-                    setattr(new.loss, name, fn(value))
+        moved = {k: fn(v) for k, v in losses.tensor_attributes(self.loss, False).items()}
+        new.loss = losses.with_tensor_attributes(self.loss, moved)
         return new
 
     def bind(self, batch_size: int, num_poses: int, like: Tensor) -> Term:

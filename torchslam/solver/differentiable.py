@@ -54,7 +54,6 @@ With a :class:`torchslam.PointMapProblem` (weights produced by a model ``net``):
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import time
 from dataclasses import dataclass
@@ -63,7 +62,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchslam import _checks
+from torchslam import _checks, losses
 from torchslam.lie import se3
 from torchslam.problem import PointMapData, cost, cost_from_poses
 from torchslam.solver import linear
@@ -249,17 +248,6 @@ def _run_truncated(
 # Implicit: the implicit function theorem at the solution
 
 
-def _loss_tensors(loss: object) -> list[str]:
-    """Names of the floating-point tensor attributes of a loss (e.g. a tensor scale)."""
-    if loss is None or not hasattr(loss, "__dict__"):
-        return []
-    return [
-        name
-        for name, value in vars(loss).items()
-        if isinstance(value, Tensor) and value.is_floating_point()
-    ]
-
-
 @dataclass(frozen=True)
 class _DataSpec:
     """How to rebuild a PointMapData from its differentiable tensors θ (a flat list): the
@@ -276,7 +264,7 @@ class _DataSpec:
             f for f in ("observations", "weights", "information") if getattr(data, f) is not None
         )
         terms = tuple(tuple(term.tensors()) for term in data.terms)
-        return _DataSpec(data, fields, tuple(_loss_tensors(data.loss)), terms)
+        return _DataSpec(data, fields, tuple(losses.tensor_attributes(data.loss)), terms)
 
     def tensors(self) -> list[Tensor]:
         out = [getattr(self.data, f) for f in self.fields]
@@ -289,11 +277,9 @@ class _DataSpec:
     def rebuild(self, theta: list[Tensor]) -> PointMapData:
         it = iter(theta)
         values = {f: next(it) for f in self.fields}
-        loss = self.data.loss
-        if self.loss_attributes:
-            loss = copy.copy(loss)
-            for name in self.loss_attributes:
-                setattr(loss, name, next(it))
+        loss = losses.with_tensor_attributes(
+            self.data.loss, {name: next(it) for name in self.loss_attributes}
+        )
         terms = tuple(
             term.replace_tensors({name: next(it) for name in names})
             for term, names in zip(self.data.terms, self.term_tensors, strict=True)
