@@ -224,7 +224,7 @@ class PointMapProblem(nn.Module):
                 fixed_poses,
                 fixed_points,
                 self.diagnostics,
-                _term_links(terms, B, observations) if terms else None,
+                _term_links(terms, B) if terms else None,
             )
 
         # Padding slots may hold any index (e.g. -1); point them at row 0 so that the gathers
@@ -630,7 +630,7 @@ def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) ->
     return tuple(term.bind(B, m, observations) for term in terms)
 
 
-def _term_links(terms: tuple[Term, ...], B: int, observations: Tensor) -> list[tuple]:
+def _term_links(terms: tuple[Term, ...], B: int) -> list[tuple]:
     """The terms' full-rank links per problem: [(edges (L, 2), anchors (A,)) for each b].
 
     An instance links its poses when its residual has ≥ 6 entries and it is valid with a
@@ -642,11 +642,7 @@ def _term_links(terms: tuple[Term, ...], B: int, observations: Tensor) -> list[t
     for term in terms:
         if term.num_instances == 0:
             continue
-        d = term.residual(
-            se3.identity(1, term.arity, dtype=observations.dtype, device=observations.device),
-            **{k: v[:1, :1] for k, v in term.constants.items()},
-        ).shape[-1]
-        if d < 6:
+        if term.residual_dim < 6:  # set by Term.bind
             continue
         active = term.valid
         if term.weight is not None:

@@ -167,6 +167,8 @@ class Term:
         self.information = information
         self.loss = loss
         self.valid = valid
+        # Entries d of one residual; set by bind() (None before, or without instances).
+        self.residual_dim: int | None = None
 
     # ----------------------------------------------------------------------------------------
     # What a subclass writes
@@ -286,7 +288,7 @@ class Term:
                     f"{fn}.residual must return shape (..., d) for poses (..., a, 4, 4); for "
                     f"one instance (1, 1, a, 4, 4) it returned {tuple(r.shape)}"
                 )
-            d = r.shape[-1]
+            d = new.residual_dim = r.shape[-1]
             if new.information is not None and tuple(new.information.shape[-2:]) != (d, d):
                 raise ValueError(
                     f"{fn}: argument 'information' must be ({d}, {d}) per instance for its "
@@ -336,6 +338,17 @@ def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[T
     return r, J.reshape(B, K, *J.shape[1:])
 
 
+def _check_measurements(fn: str, measurements: object, lead: tuple[int, ...]) -> None:
+    """Measurements of a built-in term: poses of shape lead + (4, 4)."""
+    _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
+    if tuple(measurements.shape[:-2]) != lead:
+        raise ValueError(
+            f"{fn}: argument 'measurements' must have shape {lead} + (4, 4) to match "
+            f"'pose_index', got {tuple(measurements.shape)}"
+        )
+    _checks.check_pose_matrix(fn, "measurements", measurements)
+
+
 class RelativePoseTerm(Term):
     """Relative-pose (between) terms r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹), ξ = (ω, v).
 
@@ -371,19 +384,13 @@ class RelativePoseTerm(Term):
         valid: Tensor | None = None,
     ) -> None:
         fn = "RelativePoseTerm"
-        _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
-        _checks.check_pose_matrix(fn, "measurements", measurements)
         if isinstance(pose_index, Tensor) and pose_index.shape[-1:] != (2,):
             raise ValueError(
                 f"{fn}: argument 'pose_index' must have shape (K, 2) or (B, K, 2), "
                 f"got {tuple(pose_index.shape)}"
             )
-        if isinstance(pose_index, Tensor) and measurements.shape[:-2] != pose_index.shape[:-1]:
-            raise ValueError(
-                f"{fn}: argument 'measurements' must have shape {tuple(pose_index.shape[:-1])} "
-                f"+ (4, 4) to match 'pose_index' {tuple(pose_index.shape)}, "
-                f"got {tuple(measurements.shape)}"
-            )
+        if isinstance(pose_index, Tensor):
+            _check_measurements(fn, measurements, tuple(pose_index.shape[:-1]))
         super().__init__(
             pose_index,
             {"measurements": measurements},
@@ -424,8 +431,6 @@ class PosePriorTerm(Term):
         valid: Tensor | None = None,
     ) -> None:
         fn = "PosePriorTerm"
-        _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
-        _checks.check_pose_matrix(fn, "measurements", measurements)
         if not isinstance(pose_index, Tensor):
             raise TypeError(
                 f"{fn}: argument 'pose_index' must be a torch.Tensor, "
@@ -436,11 +441,7 @@ class PosePriorTerm(Term):
                 f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), "
                 f"got {tuple(pose_index.shape)}"
             )
-        if measurements.shape[:-2] != pose_index.shape:
-            raise ValueError(
-                f"{fn}: argument 'measurements' must have shape {tuple(pose_index.shape)} "
-                f"+ (4, 4) to match 'pose_index', got {tuple(measurements.shape)}"
-            )
+        _check_measurements(fn, measurements, tuple(pose_index.shape))
         super().__init__(
             pose_index[..., None],
             {"measurements": measurements},
