@@ -205,7 +205,7 @@ def test_read_poses_rejects_malformed_lines(tmp_path):
     with pytest.raises(ValueError, match="line 1: expected"):
         register.read_poses(path)
     path.write_text("a 0 0 0 one 0 0 0\n")
-    with pytest.raises(ValueError, match="not a number"):
+    with pytest.raises(ValueError, match="line 1: expected a number, got 'one'"):
         register.read_poses(path)
 
 

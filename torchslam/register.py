@@ -60,6 +60,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import icp
+from torchslam.io import _text
 from torchslam.io.ply import read_ply_points, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
 from torchslam.lie import convert, se3
@@ -292,34 +293,41 @@ def write_poses(
 def read_poses(
     path: str | os.PathLike, *, dtype: torch.dtype = torch.float64
 ) -> tuple[list[str], Tensor]:
-    """Read a pose file of :func:`write_poses`: ``(names, T_0i of shape (m, 4, 4))``."""
-    names, rows = [], []
-    with open(path, encoding="utf-8") as f:
-        for number, raw in enumerate(f, start=1):
-            words = raw.split()
-            if not words or words[0].startswith("#"):
-                continue
-            if len(words) != 8:
-                raise ValueError(
-                    f"read_poses: {os.fspath(path)}: line {number}: expected 'name tx ty tz "
-                    f"qw qx qy qz', got {len(words)} fields"
-                )
-            try:
-                values = [float(v) for v in words[1:]]
-            except ValueError:
-                raise ValueError(
-                    f"read_poses: {os.fspath(path)}: line {number}: not a number"
-                ) from None
-            names.append(words[0])
-            rows.append(values)
+    """Read a pose file of :func:`write_poses`: ``(names, T_0i of shape (m, 4, 4))``.
+
+    Raises:
+        ValueError: a malformed line (field count, a number that is not a finite decimal, a
+            zero quaternion), a repeated name, no poses, bytes that are not UTF-8 text; the
+            message names the file and the line.
+        OSError: the file cannot be read.
+    """
+    fn, where = "read_poses", os.fspath(path)
+    with open(path, "rb") as f:
+        lines = _text.decode_lines(f.read(), path, fn, "text pose file")
+    names: list[str] = []
+    rows: list[list[float]] = []
+    for number, raw in enumerate(lines, start=1):
+        words = raw.split()
+        if not words or words[0].startswith("#"):
+            continue
+        if len(words) != 8:
+            raise ValueError(
+                f"{fn}: {where}: line {number}: expected 'name tx ty tz qw qx qy qz', got "
+                f"{len(words)} fields"
+            )
+        try:
+            values = [_text.parse_finite_float(v) for v in words[1:]]
+            q = _text.unit_quaternion(values[3:], "quaternion (qw, qx, qy, qz)")
+        except _text.TokenError as error:
+            raise ValueError(f"{fn}: {where}: line {number}: {error}") from None
+        if words[0] in names:
+            raise ValueError(f"{fn}: {where}: line {number}: scan {words[0]!r} listed twice")
+        names.append(words[0])
+        rows.append([*values[:3], *q])
     if not rows:
-        raise ValueError(f"read_poses: {os.fspath(path)}: no poses")
+        raise ValueError(f"{fn}: {where}: no poses")
     values_t = torch.tensor(rows, dtype=dtype)
-    q = values_t[:, 3:]
-    norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-    if not bool((norm > 0).all()):
-        raise ValueError(f"read_poses: {os.fspath(path)}: zero quaternion")
-    R = convert.quaternion_to_matrix(q / norm)
+    R = convert.quaternion_to_matrix(values_t[:, 3:])
     return names, se3.from_rotation_translation(R, values_t[:, :3])
 
 
