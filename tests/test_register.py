@@ -279,8 +279,8 @@ def test_cli_writes_outputs_and_error_table(critter, tmp_path, capsys):
         (["broken.ply"], "broken.ply"),
         (["--frame", "nope"], "--frame 'nope'"),
         (["--reference", "missing.conf"], "no such reference file"),
-        (["--voxel-size", "-1"], "--voxel-size must be > 0"),
-        (["--rounds", "-1"], "--rounds must be ≥ 0"),
+        (["--voxel-size", "-1"], "argument --voxel-size"),
+        (["--rounds", "-1"], "argument --rounds"),
     ],
 )
 def test_cli_bad_input_is_one_line_error(extra, fragment, tmp_path, capsys, monkeypatch):
@@ -296,6 +296,19 @@ def test_cli_bad_input_is_one_line_error(extra, fragment, tmp_path, capsys, monk
     err = capsys.readouterr().err
     assert fragment in err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_icp_status_is_shown_by_name(generator):
+    cloud = torch.rand(60, 3, generator=generator, dtype=torch.float64)
+    single = icp.icp(cloud, cloud)  # an exact fit: converged at once
+    assert single.status_name == "CONVERGED"
+    text = repr(single)
+    assert text.startswith("ICPResult(status=CONVERGED, iterations=0,")
+    assert "tensor(" not in text.split("transform=")[0]
+    initial = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
+    batch = icp.icp_batch(cloud, cloud, initial)
+    assert batch.status_name == ["CONVERGED", "CONVERGED"]
+    assert "status={'CONVERGED': 2}" in repr(batch) and "tensor(" not in repr(batch)
 
 
 # ----------------------------------------------------------------------------- real data
