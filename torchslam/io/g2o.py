@@ -263,7 +263,9 @@ def parse_g2o(
             raise error(lineno, str(exc)) from None
 
     if not vertex_ids:
-        raise ValueError(f"parse_g2o: {source}: no vertices (VERTEX_SE3:QUAT or VERTEX_SE2)")
+        raise ValueError(
+            f"parse_g2o: {source}: no vertices (no VERTEX_SE3:QUAT or VERTEX_SE2 line)"
+        )
     index_of: dict[int, int] = {}
     first_line: dict[int, int] = {}
     for vid, lineno in zip(vertex_ids, vertex_lines, strict=True):

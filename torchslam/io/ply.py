@@ -76,6 +76,8 @@ _TYPE_NAMES = {kind: name for name, kind in reversed(_TYPES.items())}
 _FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 # "end_header" on a line of its own (not at the end of a comment line)
 _END_HEADER = re.compile(rb"(?m)^end_header[ \t]*\r?\n")
+# Element and property names: printable ASCII without white space.
+_NAME = re.compile(r"[!-~]+")
 # Characters of the tokens the vectorized ascii path handles; anything else takes the slow
 # path, which names the offending line.
 _NOT_NUMERIC = re.compile(r"[^0-9eE+\-. \t\r\n]")
@@ -144,6 +146,30 @@ def _error(path: str | os.PathLike, what: str) -> ValueError:
     return ValueError(f"read_ply: {os.fspath(path)}: {what}")
 
 
+def _header_lines(path: str | os.PathLike, header: bytes) -> list[str]:
+    """The header's lines (split at ``\\n`` only, ``\\r`` dropped): ASCII, except that comment
+    and obj_info lines may hold any bytes (decoded as UTF-8, invalid bytes replaced)."""
+    raw_lines = header.split(b"\n")
+    if raw_lines and raw_lines[-1] == b"":
+        raw_lines.pop()
+    lines = []
+    for number, raw in enumerate(raw_lines, start=1):
+        raw = raw.removesuffix(b"\r")
+        words = raw.split(None, 1)
+        if words and words[0] in (b"comment", b"obj_info"):
+            lines.append(raw.decode("utf-8", errors="replace"))
+            continue
+        try:
+            lines.append(raw.decode("ascii"))
+        except UnicodeDecodeError as error:
+            raise _error(
+                path,
+                f"line {number}: not an ASCII PLY header line (byte 0x{raw[error.start]:02x} at "
+                f"column {error.start + 1})",
+            ) from None
+    return lines
+
+
 def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list, list, list]:
     """Parse header lines (without 'end_header'). Returns format, elements, comments, obj_info."""
     if not lines or lines[0].strip() != "ply":
@@ -180,6 +206,7 @@ def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list,
                 raise _error(
                     path, f"line {number}: expected 'element <name> <count>', got {line[:80]!r}"
                 )
+            _check_name(path, number, "element", words[1])
             if any(words[1] == e[0] for e in elements):
                 raise _error(path, f"line {number}: element {words[1]!r} declared twice")
             _check_element_has_properties(path, elements, number)
@@ -205,6 +232,7 @@ def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list,
                         f"line {number}: expected 'property <type> <name>', got {line[:80]!r}",
                     )
                 prop = PlyProperty(words[2], _TYPES[words[1]])
+            _check_name(path, number, "property", prop.name)
             if any(prop.name == q.name for q in props):
                 raise _error(
                     path,
@@ -218,6 +246,11 @@ def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list,
     if fmt is None:
         raise _error(path, "header has no 'format' line")
     return fmt, elements, comments, obj_info
+
+
+def _check_name(path: str | os.PathLike, number: int, what: str, name: str) -> None:
+    if not _NAME.fullmatch(name):
+        raise _error(path, f"line {number}: {what} name {name!r} is not printable ASCII")
 
 
 def _check_element_has_properties(path: str | os.PathLike, elements: list, number: int) -> None:
@@ -610,10 +643,7 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
             raise _error(path, "line 1: not a PLY file (no 'ply' magic)")
         raise _error(path, "header is not terminated by an 'end_header' line")
     # Split at "\n" only (splitlines would also split at form feeds, shifting line numbers).
-    header_text = raw[: match.start()].decode("ascii", errors="replace")
-    header_lines = [line.rstrip("\r") for line in header_text.split("\n")]
-    if header_lines and header_lines[-1] == "":
-        header_lines.pop()
+    header_lines = _header_lines(path, raw[: match.start()])
     fmt, declared, comments, obj_info = _parse_header(path, header_lines)
     element_list = tuple(PlyElement(n, c, tuple(p)) for n, c, p in declared)
     names = [e.name for e in element_list]
