@@ -311,6 +311,17 @@ def test_icp_status_is_shown_by_name(generator):
     assert "status={'CONVERGED': 2}" in repr(batch) and "tensor(" not in repr(batch)
 
 
+def test_too_few_points_at_a_voxel_size_is_a_clear_error(generator):
+    cloud = torch.rand(40, 3, generator=generator, dtype=torch.float64)
+    flat = torch.ones(40, 3, dtype=torch.float64)  # one voxel at any pitch
+    with pytest.raises(ValueError, match=r"scan 'b' keeps 1 of 40 points on a 0\.04 voxel"):
+        register.register(["a", "b"], [cloud, flat], config())
+    stage = icp.Stage(voxel_size=10.0)
+    initial = torch.eye(4, dtype=torch.float64)[None]
+    with pytest.raises(ValueError, match=r"level 0 \(voxel size 10\) leaves 1 source"):
+        icp.register_coarse_to_fine(cloud, cloud, initial, [stage])
+
+
 # ----------------------------------------------------------------------------- real data
 
 

@@ -703,9 +703,15 @@ def register_coarse_to_fine(
     hypotheses = initial
     per_stage: list[ICPResult] = []
     best: ICPResult | None = None
-    for stage in stages:
+    for level, stage in enumerate(stages):
         src = voxel_downsample(source, stage.voxel_size) if stage.voxel_size > 0 else source
         tgt = voxel_downsample(target, stage.voxel_size) if stage.voxel_size > 0 else target
+        if min(src.shape[0], tgt.shape[0]) < 3:
+            raise ValueError(
+                f"{fn}: level {level} (voxel size {stage.voxel_size:g}) leaves "
+                f"{src.shape[0]} source and {tgt.shape[0]} target points, need ≥ 3 each; use a "
+                "smaller voxel size"
+            )
         normals = None
         if stage.config.method == "point_to_plane":
             normals = estimate_normals(tgt, min(stage.normal_neighbors, tgt.shape[0]))

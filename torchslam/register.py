@@ -787,6 +787,7 @@ def register(
         frame = names.index(frame)
     if not 0 <= frame < len(names):
         raise ValueError(f"register: reference index {frame} out of range")
+    _check_point_counts(names, clouds, config)
     say = progress or (lambda _line: None)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -839,6 +840,24 @@ def register(
         config.voxel_size,
         seconds,
     )
+
+
+def _check_point_counts(
+    names: Sequence[str], clouds: Sequence[Tensor], config: RegisterConfig
+) -> None:
+    """Every scan keeps enough points at every voxel size of the pipeline (ValueError)."""
+    sizes = sorted({s.voxel_size for s in config.pairwise_stages()} | {config.voxel_size})
+    # ICP needs 3 points and stops at fewer than min_correspondences (6 by default) matches.
+    need = max([3, *(s.config.min_correspondences for s in config.pairwise_stages())])
+    for name, cloud in zip(names, clouds, strict=True):
+        for size in sizes:
+            count = len(icp.voxel_downsample(cloud, size)) if size > 0 else len(cloud)
+            if count < need:
+                raise ValueError(
+                    f"register: scan {name!r} keeps {count} of {len(cloud)} points on a "
+                    f"{size:g} voxel grid, need ≥ {need}; use a smaller voxel size "
+                    "(--voxel-size)"
+                )
 
 
 # ----------------------------------------------------------------------------- reporting
