@@ -708,3 +708,23 @@ def test_huge_inputs_stay_finite_inside_vmap_and_with_validation_off():
         assert bool(torch.isfinite(torch.func.vmap(se3.jl)(xi)).all())
         J = torch.func.vmap(torch.func.jacrev(so3.exp))(omega)
         assert bool(torch.isfinite(J).all())
+
+
+def test_no_host_sync_with_validation_off():
+    # With value checks off the public surface must stay sync-free (the solver's hot path,
+    # CUDA graphs): under FakeTensorMode any read of a tensor's value raises. With checks on
+    # every function reads values (each has a value check), which the mode also reveals.
+    from torch._subclasses.fake_tensor import DataDependentOutputException, FakeTensorMode
+
+    rng = random.Random(11)
+    for api in APIS:
+        kinds = [_resolve(kind, api.manifold) for _, kind in api.args]
+        if "t3d" in kinds:
+            continue
+        args = [_valid(kind, (2,), F64, rng, api.manifold) for kind in kinds]
+        with FakeTensorMode(allow_non_fake_inputs=True) as mode:
+            fake = [mode.from_tensor(a) for a in args]
+            with torchslam.validation(False):
+                api.call(*fake)  # no exception: no value was read
+            with pytest.raises(DataDependentOutputException):
+                api.call(*fake)

@@ -343,8 +343,8 @@ class SE3Matrix(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return x @ se3._exp(delta)
-        return se3._exp(delta) @ x
+            return x @ se3._exp_robust(delta)
+        return se3._exp_robust(delta) @ x
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         R, t = x[..., :3, :3], x[..., :3, 3:]
@@ -593,20 +593,20 @@ class SE3Tangent(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._exp(x) @ se3._exp(delta))
-        return se3._log(se3._exp(delta) @ se3._exp(x))
+            return se3._log(se3._exp_robust(x) @ se3._exp_robust(delta))
+        return se3._log(se3._exp_robust(delta) @ se3._exp_robust(x))
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._inverse(se3._exp(x)) @ se3._exp(y))
-        return se3._log(se3._exp(y) @ se3._inverse(se3._exp(x)))
+            return se3._log(se3._inverse(se3._exp_robust(x)) @ se3._exp_robust(y))
+        return se3._log(se3._exp_robust(y) @ se3._inverse(se3._exp_robust(x)))
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl_inv(-x)  # jr_inv(ξ)
-        return se3._jl_inv(x)
+            return se3._jl_inv_robust(-x)  # jr_inv(ξ)
+        return se3._jl_inv_robust(x)
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl(-x)  # jr(ξ)
-        return se3._jl(x)
+            return se3._jl_robust(-x)  # jr(ξ)
+        return se3._jl_robust(x)

@@ -156,3 +156,24 @@ def test_limits_for_infinite_angle():
     R = so3.exp(omega)
     assert float((R.T @ R - torch.eye(3, dtype=F64)).abs().max()) <= 1e-15
     assert float((so3.jl(omega) - torch.full((3, 3), 1.0 / 3.0, dtype=F64)).abs().max()) <= 1e-15
+
+
+@pytest.mark.parametrize("dtype", [F64, F32], ids=["f64", "f32"])
+def test_robust_forms_equal_the_hot_path_forms_bitwise(generator, dtype):
+    # The solver calls the θ-power forms (so3._exp, se3._exp, se3._jl_inv, ...) directly; the
+    # public functions use the robust forms, which take the very same operations on ordinary
+    # input (every hard angle, angles up to the switch, translations up to 1e4): equal bits.
+    below_switch = 2.0**20 * 0.99 if dtype == F64 else 2.0**10 * 0.99
+    angles = (0.0, 1e-12, 1e-8, 1e-4, 0.3, 0.5, math.pi / 2, math.pi - 1e-6, math.pi, 7.0)
+    omega = rotation_vectors_with_angles((*angles, below_switch), generator, dtype=dtype)
+    xi = _twists(omega, generator)
+    pairs = [
+        (so3._exp, so3._exp_robust, omega),
+        (so3._jl, so3._jl_robust, omega),
+        (so3._jl_inv, so3._jl_inv_robust, omega),
+        (se3._exp, se3._exp_robust, xi),
+        (se3._jl, se3._jl_robust, xi),
+        (se3._jl_inv, se3._jl_inv_robust, xi),
+    ]
+    for fast, robust, x in pairs:
+        assert torch.equal(fast(x), robust(x)), fast.__qualname__

@@ -132,7 +132,7 @@ def axis_angle_to_matrix(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.axis_angle_to_matrix", "omega", omega, (3,))
     _checks.check_finite("convert.axis_angle_to_matrix", "omega", omega)
-    return so3._exp(omega)
+    return so3._exp_robust(omega)
 
 
 def matrix_to_axis_angle(R: Tensor) -> Tensor:

@@ -136,6 +136,20 @@ def vee(Xi: Tensor) -> Tensor:
 
 
 def _exp(xi: Tensor) -> Tensor:
+    # The θ-power form, for the solver's hot path; _exp_robust for the public API.
+    omega, v = xi[..., :3], xi[..., 3:]
+    theta2 = (omega * omega).sum(-1)
+    a, b = _series.sinc_coefficients(theta2)
+    c = _series.jacobian_coefficient_c(theta2)
+    R = so3._skew_quadratic(omega, theta2, a, b)
+    # t = J_l(ω) v = v + b ω × v + c ω × (ω × v), without forming J_l.
+    w_x_v = torch.linalg.cross(omega, v, dim=-1)
+    t = v + b[..., None] * w_x_v + c[..., None] * torch.linalg.cross(omega, w_x_v, dim=-1)
+    return _assemble(R, t)
+
+
+def _exp_robust(xi: Tensor) -> Tensor:
+    # Bitwise equal to _exp for |ω| ≤ 2²⁰ and |v| ≤ 2⁵¹² (float32: 2¹⁰, 2⁶⁴); finite beyond.
     omega, v = xi[..., :3], xi[..., 3:]
     p = so3._polar(omega)
     a, b = _series.sinc_coefficients(p.theta2)
@@ -161,7 +175,7 @@ def exp(xi: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.exp", "xi", xi, (6,))
     _checks.check_finite("se3.exp", "xi", xi)
-    result = _exp(xi)
+    result = _exp_robust(xi)
     _checks.check_result_finite("se3.exp", result, xi=xi)
     return result
 
@@ -285,7 +299,32 @@ def adjoint(T: Tensor) -> Tensor:
     return result
 
 
-def _q_block(p: so3._Polar, v: Tensor) -> tuple[Tensor, Tensor]:
+def _q_combination(
+    W: Tensor, V: Tensor, c: Tensor, q2: Tensor, q3: Tensor, kappa: Tensor | None = None
+) -> Tensor:
+    """½V + c (WV + VW + κ·WVW) + q2 (WWV + VWW − 3WVW) + q3 (WVWW + WWVW); κ = 1 if None."""
+    WV, VW = W @ V, V @ W
+    WVW = WV @ W
+    WWV = W @ WV
+    VWW = VW @ W
+    kWVW = WVW if kappa is None else kappa[..., None, None] * WVW
+    return (
+        0.5 * V
+        + c[..., None, None] * (WV + VW + kWVW)
+        + q2[..., None, None] * (WWV + VWW - 3.0 * WVW)
+        + q3[..., None, None] * (WVW @ W + W @ WVW)
+    )
+
+
+def _q_block(omega: Tensor, v: Tensor) -> Tensor:
+    """Barfoot's Q(ρ = v, φ = ω): the lower-left block of the SE(3) left Jacobian."""
+    theta2 = (omega * omega).sum(-1)
+    c = _series.jacobian_coefficient_c(theta2)
+    q2, q3 = _series.se3_q_coefficients(theta2)
+    return _q_combination(_hat(omega), _hat(v), c, q2, q3)
+
+
+def _q_block_robust(p: so3._Polar, v: Tensor) -> tuple[Tensor, Tensor]:
     """Barfoot's Q(ρ = v, φ = ω), the lower-left block of the SE(3) left Jacobian, as (Q·s, 1/s).
 
     Q = ½V + c (WV + VW + WVW) + q2 (WWV + VWW − 3WVW) + q3 (WVWW + WWVW) with W = [ω]×,
@@ -303,34 +342,43 @@ def _q_block(p: so3._Polar, v: Tensor) -> tuple[Tensor, Tensor]:
     q2 = torch.where(p.large, 0.5 - one_minus_cos * r * r, q2)
     q3 = torch.where(p.large, (0.5 * (3.0 - one_minus_cos) - 1.5 * sin_theta * r) * r, q3)
     v, unscale = _scale_down(v)
-    W, V = _hat(p.w), _hat(v)
-    WV, VW = W @ V, V @ W
-    WVW = WV @ W
-    WWV = W @ WV
-    VWW = VW @ W
-    Q = (
-        0.5 * V
-        + c[..., None, None] * (WV + VW + kappa[..., None, None] * WVW)
-        + q2[..., None, None] * (WWV + VWW - 3.0 * WVW)
-        + q3[..., None, None] * (WVW @ W + W @ WVW)
-    )
-    return Q, unscale[..., None, None]
+    return _q_combination(_hat(p.w), _hat(v), c, q2, q3, kappa), unscale[..., None, None]
+
+
+# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
+# public functions and the manifolds use the _robust forms (bitwise equal for ordinary input).
 
 
 def _jl(xi: Tensor) -> Tensor:
     omega, v = xi[..., :3], xi[..., 3:]
-    p = so3._polar(omega)
-    J = so3._jl_from_polar(p)
-    Q, unscale = _q_block(p, v)
+    J = so3._jl(omega)
+    Q = _q_block(omega, v)
     top = torch.cat((J, torch.zeros_like(J)), dim=-1)
-    return torch.cat((top, torch.cat((Q * unscale, J), dim=-1)), dim=-2)
+    return torch.cat((top, torch.cat((Q, J), dim=-1)), dim=-2)
 
 
 def _jl_inv(xi: Tensor) -> Tensor:
     omega, v = xi[..., :3], xi[..., 3:]
+    J_inv = so3._jl_inv(omega)
+    Q = _q_block(omega, v)
+    top = torch.cat((J_inv, torch.zeros_like(J_inv)), dim=-1)
+    return torch.cat((top, torch.cat((-J_inv @ Q @ J_inv, J_inv), dim=-1)), dim=-2)
+
+
+def _jl_robust(xi: Tensor) -> Tensor:
+    omega, v = xi[..., :3], xi[..., 3:]
+    p = so3._polar(omega)
+    J = so3._jl_from_polar(p)
+    Q, unscale = _q_block_robust(p, v)
+    top = torch.cat((J, torch.zeros_like(J)), dim=-1)
+    return torch.cat((top, torch.cat((Q * unscale, J), dim=-1)), dim=-2)
+
+
+def _jl_inv_robust(xi: Tensor) -> Tensor:
+    omega, v = xi[..., :3], xi[..., 3:]
     p = so3._polar(omega)
     J_inv = so3._jl_inv_from_polar(p)
-    Q, unscale = _q_block(p, v)
+    Q, unscale = _q_block_robust(p, v)
     top = torch.cat((J_inv, torch.zeros_like(J_inv)), dim=-1)
     return torch.cat((top, torch.cat(((-J_inv @ Q @ J_inv) * unscale, J_inv), dim=-1)), dim=-2)
 
@@ -354,7 +402,7 @@ def jl(xi: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.jl", "xi", xi, (6,))
     _checks.check_finite("se3.jl", "xi", xi)
-    result = _jl(xi)
+    result = _jl_robust(xi)
     _checks.check_result_finite("se3.jl", result, xi=xi)
     return result
 
@@ -370,7 +418,7 @@ def jr(xi: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.jr", "xi", xi, (6,))
     _checks.check_finite("se3.jr", "xi", xi)
-    result = _jl(-xi)
+    result = _jl_robust(-xi)
     _checks.check_result_finite("se3.jr", result, xi=xi)
     return result
 
@@ -386,7 +434,7 @@ def jl_inv(xi: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.jl_inv", "xi", xi, (6,))
     _checks.check_finite("se3.jl_inv", "xi", xi)
-    result = _jl_inv(xi)
+    result = _jl_inv_robust(xi)
     _checks.check_result_finite("se3.jl_inv", result, reason=_JL_INV_REASON, xi=xi)
     return result
 
@@ -402,6 +450,6 @@ def jr_inv(xi: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.jr_inv", "xi", xi, (6,))
     _checks.check_finite("se3.jr_inv", "xi", xi)
-    result = _jl_inv(-xi)
+    result = _jl_inv_robust(-xi)
     _checks.check_result_finite("se3.jr_inv", result, reason=_JL_INV_REASON, xi=xi)
     return result

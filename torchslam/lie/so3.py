@@ -223,6 +223,14 @@ def _skew_quadratic(omega: Tensor, theta2: Tensor, first: Tensor, second: Tensor
 
 
 def _exp(omega: Tensor) -> Tensor:
+    # The θ-power form, for the solver's hot path (finite up to |ω| ≈ 1e154 in float64).
+    theta2 = (omega * omega).sum(-1)
+    a, b = _series.sinc_coefficients(theta2)
+    return _skew_quadratic(omega, theta2, a, b)
+
+
+def _exp_robust(omega: Tensor) -> Tensor:
+    # Bitwise equal to _exp up to |ω| = 2²⁰ (2¹⁰ in float32), a rotation for every finite ω.
     p = _polar(omega)
     a, b = _rodrigues_coefficients(p)
     return _skew_quadratic(p.w, p.theta2, a, b)
@@ -253,7 +261,7 @@ def exp(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.exp", "omega", omega, (3,))
     _checks.check_finite("so3.exp", "omega", omega)
-    return _exp(omega)
+    return _exp_robust(omega)
 
 
 def _matrix_to_quaternion(R: Tensor) -> Tensor:
@@ -319,12 +327,31 @@ def log(R: Tensor) -> Tensor:
     return _log(R)
 
 
+# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
+# public functions and the manifolds use the _robust forms (bitwise equal up to |ω| = 2²⁰).
+
+
+def _jl(omega: Tensor) -> Tensor:
+    theta2 = (omega * omega).sum(-1)
+    _, b = _series.sinc_coefficients(theta2)
+    c = _series.jacobian_coefficient_c(theta2)
+    return _skew_quadratic(omega, theta2, b, c)
+
+
+def _jl_inv(omega: Tensor) -> Tensor:
+    theta2 = (omega * omega).sum(-1)
+    d = _series.inverse_jacobian_coefficient_d(theta2)
+    W = _hat(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
+    return eye - 0.5 * W + d[..., None, None] * (W @ W)
+
+
 def _jl_from_polar(p: _Polar) -> Tensor:
     first, second = _jl_coefficients(p)
     return _skew_quadratic(p.w, p.theta2, first, second)
 
 
-def _jl(omega: Tensor) -> Tensor:
+def _jl_robust(omega: Tensor) -> Tensor:
     return _jl_from_polar(_polar(omega))
 
 
@@ -340,7 +367,7 @@ def _jl_inv_from_polar(p: _Polar) -> Tensor:
     return eye - h[..., None, None] * W + d[..., None, None] * (W @ W)
 
 
-def _jl_inv(omega: Tensor) -> Tensor:
+def _jl_inv_robust(omega: Tensor) -> Tensor:
     return _jl_inv_from_polar(_polar(omega))
 
 
@@ -364,7 +391,7 @@ def jl(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.jl", "omega", omega, (3,))
     _checks.check_finite("so3.jl", "omega", omega)
-    return _jl(omega)
+    return _jl_robust(omega)
 
 
 def jr(omega: Tensor) -> Tensor:
@@ -378,7 +405,7 @@ def jr(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.jr", "omega", omega, (3,))
     _checks.check_finite("so3.jr", "omega", omega)
-    return _jl(-omega)
+    return _jl_robust(-omega)
 
 
 def jl_inv(omega: Tensor) -> Tensor:
@@ -395,7 +422,7 @@ def jl_inv(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.jl_inv", "omega", omega, (3,))
     _checks.check_finite("so3.jl_inv", "omega", omega)
-    result = _jl_inv(omega)
+    result = _jl_inv_robust(omega)
     _checks.check_result_finite("so3.jl_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
     return result
 
@@ -411,7 +438,7 @@ def jr_inv(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.jr_inv", "omega", omega, (3,))
     _checks.check_finite("so3.jr_inv", "omega", omega)
-    result = _jl_inv(-omega)
+    result = _jl_inv_robust(-omega)
     _checks.check_result_finite("so3.jr_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
     return result
 
