@@ -205,7 +205,7 @@ def test_read_poses_rejects_malformed_lines(tmp_path):
     with pytest.raises(ValueError, match="line 1: expected"):
         register.read_poses(path)
     path.write_text("a 0 0 0 one 0 0 0\n")
-    with pytest.raises(ValueError, match="not a number"):
+    with pytest.raises(ValueError, match="line 1: expected a number, got 'one'"):
         register.read_poses(path)
 
 
@@ -279,8 +279,8 @@ def test_cli_writes_outputs_and_error_table(critter, tmp_path, capsys):
         (["broken.ply"], "broken.ply"),
         (["--frame", "nope"], "--frame 'nope'"),
         (["--reference", "missing.conf"], "no such reference file"),
-        (["--voxel-size", "-1"], "--voxel-size must be > 0"),
-        (["--rounds", "-1"], "--rounds must be ≥ 0"),
+        (["--voxel-size", "-1"], "argument --voxel-size"),
+        (["--rounds", "-1"], "argument --rounds"),
     ],
 )
 def test_cli_bad_input_is_one_line_error(extra, fragment, tmp_path, capsys, monkeypatch):
@@ -296,6 +296,30 @@ def test_cli_bad_input_is_one_line_error(extra, fragment, tmp_path, capsys, monk
     err = capsys.readouterr().err
     assert fragment in err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_icp_status_is_shown_by_name(generator):
+    cloud = torch.rand(60, 3, generator=generator, dtype=torch.float64)
+    single = icp.icp(cloud, cloud)  # an exact fit: converged at once
+    assert single.status_name == "CONVERGED"
+    text = repr(single)
+    assert text.startswith("ICPResult(status=CONVERGED, iterations=0,")
+    assert "tensor(" not in text.split("transform=")[0]
+    initial = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
+    batch = icp.icp_batch(cloud, cloud, initial)
+    assert batch.status_name == ["CONVERGED", "CONVERGED"]
+    assert "status={'CONVERGED': 2}" in repr(batch) and "tensor(" not in repr(batch)
+
+
+def test_too_few_points_at_a_voxel_size_is_a_clear_error(generator):
+    cloud = torch.rand(40, 3, generator=generator, dtype=torch.float64)
+    flat = torch.ones(40, 3, dtype=torch.float64)  # one voxel at any pitch
+    with pytest.raises(ValueError, match=r"scan 'b' keeps 1 of 40 points on a 0\.04 voxel"):
+        register.register(["a", "b"], [cloud, flat], config())
+    stage = icp.Stage(voxel_size=10.0)
+    initial = torch.eye(4, dtype=torch.float64)[None]
+    with pytest.raises(ValueError, match=r"level 0 \(voxel size 10\) leaves 1 source"):
+        icp.register_coarse_to_fine(cloud, cloud, initial, [stage])
 
 
 # ----------------------------------------------------------------------------- real data

@@ -22,11 +22,13 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
 import torchslam as ts
+from torchslam import _plotting
 from torchslam.lie import se3
 
 REPEATS = {"S": 20, "M": 10, "L": 3, "O": 5, "BATCH": 5}
@@ -198,42 +200,59 @@ def peak_memory_subprocess(case: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam bench``."""
+    from torchslam.cli import int_range
+
     parser.add_argument(
         "--cases", nargs="+", default=["S", "M", "L", "O", "BATCH"], choices=list(REPEATS)
     )
-    parser.add_argument("--repeats", type=int, default=None, help="runs per case (median)")
+    parser.add_argument(
+        "--repeats", type=int_range(1, 1000), default=None, help="runs per case [1, 1000] (median)"
+    )
     parser.add_argument("--quick", action="store_true", help="2 repeats, no scipy, no memory")
     parser.add_argument("--no-scipy", action="store_true")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    parser.add_argument(
+        "--threads", type=int_range(1, 1024), default=2, help="torch threads [1, 1024] (2)"
+    )
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
 
 
-def run(args: argparse.Namespace) -> list[dict]:
-    """Run the benchmark; print progress and a table; write JSON and PNG to ``args.out``."""
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def run(
+    args: argparse.Namespace,
+    echo: Callable[[str], None] = print,
+    warn: Callable[[str], None] = _stderr,
+) -> list[dict]:
+    """Run the benchmark; print progress and a table; write JSON (and PNG) to ``args.out``.
+
+    The figure needs matplotlib; without it one line ``figure skipped: …`` goes to ``warn``.
+    """
     if args.repeats is not None and args.repeats < 1:
         raise ValueError(f"--repeats must be ≥ 1, got {args.repeats}")
     if args.threads < 1:
         raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
-    torch.set_num_threads(args.threads)
     out_dir = args.out
     out_dir.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(args.threads)
     rate = matmul_rate()
-    print(
+    echo(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
         f"float64 matmul rate {rate / 1e9:.1f} GFLOP/s"
     )
     rows = []
     for index, case in enumerate(args.cases):
-        print(f"[{index + 1}/{len(args.cases)}] case {case} …", flush=True)
+        echo(f"[{index + 1}/{len(args.cases)}] case {case} …")
         repeats = 2 if args.quick else (args.repeats or REPEATS[case])
         row = run_case(case, repeats, rate, with_scipy=not (args.quick or args.no_scipy))
         if case == "L" and not args.quick:
             row["peak_memory_gib"] = peak_memory_subprocess("L")
         rows.append(row)
-        print(_format_row(row), flush=True)
+        echo(_format_row(row))
 
-    print()
-    print(
+    echo("")
+    echo(
         f"{'case':6} {'time':>9} {'target':>8} {'iters':>5} {'ms/iter':>8} {'FLOP ratio':>10} "
         f"{'rot err °':>10} {'scipy':>8} {'speed-up':>8}"
     )
@@ -242,23 +261,31 @@ def run(args: argparse.Namespace) -> list[dict]:
         target_text = f"{target * 1e3:.0f}ms" if target else "-"
         scipy_text = f"{r['scipy_s']:.3f}s" if "scipy_s" in r else "-"
         speedup_text = f"{r['speedup_vs_scipy']:.1f}×" if "speedup_vs_scipy" in r else "-"
-        print(
+        echo(
             f"{r['case']:6} {r['median_s'] * 1e3:7.1f}ms {target_text:>8} {r['iterations']:5d} "
             f"{r['per_iteration_s'] * 1e3:8.2f} {r['flop_ratio']:10.1f} "
             f"{r['rotation_error_deg']:10.5f} {scipy_text:>8} {speedup_text:>8}"
         )
-    (out_dir / "bench_solver.json").write_text(
+    json_path, png_path = out_dir / "bench_solver.json", out_dir / "bench_solver.png"
+    json_path.write_text(
         json.dumps({"matmul_rate": rate, "threads": args.threads, "cases": rows}, indent=2)
     )
-    _plot(rows, out_dir / "bench_solver.png")
-    print(f"\nwrote {out_dir / 'bench_solver.json'} and {out_dir / 'bench_solver.png'}")
+    written = [json_path]
+    try:
+        _plot(rows, png_path)
+    except _plotting.MatplotlibMissingError as error:
+        warn(f"figure skipped: {error}")
+    else:
+        written.append(png_path)
+    echo(f"\nwrote {' and '.join(map(str, written))}")
     return rows
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    run(parser.parse_args(argv))
+def main(argv: list[str] | None = None) -> int:
+    """``python experiments/bench_solver.py``: the same as ``torchslam bench``."""
+    from torchslam import cli
+
+    return cli.main(["bench", *(sys.argv[1:] if argv is None else argv)])
 
 
 def _format_row(r: dict) -> str:
@@ -281,13 +308,8 @@ def _format_row(r: dict) -> str:
 
 
 def _plot(rows: list[dict], path: Path) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return
+    """Bar chart of the timings (raises MatplotlibMissingError without matplotlib)."""
+    plt = _plotting.require_pyplot()
     cases = [r["case"] for r in rows]
     fig, ax = plt.subplots(figsize=(7, 4))
     x = range(len(cases))
@@ -310,4 +332,4 @@ def _plot(rows: list[dict], path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

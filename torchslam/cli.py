@@ -2,52 +2,160 @@
 
 Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure),
 ``bench`` (the solver benchmark), ``posegraph`` (optimize a g2o pose graph) and ``register``
-(multiview registration of range scans). Bad input (a
-missing file, a malformed file, an impossible option value) gives a one-line message on stderr
-and exit status 2 — never a traceback.
+(multiview registration of range scans).
+
+Options of every subcommand (and of ``torchslam`` itself): ``--quiet`` (only warnings and
+errors, on stderr), ``--verbose`` (also the library's log records: loggers
+``torchslam.solver`` and ``torchslam.posegraph``, on stderr) and ``--version``.
+
+Exit status:
+
+- 0: success. A solve that stopped without converging (iteration limit, damping limit) still
+  exits 0, but its status is printed and a ``warning:`` line goes to stderr.
+- 1: the run failed: a solve ended ``NON_FINITE`` or ``LINEAR_SOLVE_FAILED`` (status printed,
+  outputs still written), or the machine ran out of memory.
+- 2: bad input: an impossible option value, a missing or malformed file, a figure asked for
+  with ``--plot`` while matplotlib is missing. One line on stderr,
+  ``torchslam <command>: error: …``, and never a traceback.
+- 130: interrupted (Ctrl-C).
+
+Figures need matplotlib (``pip install 'torchslam[plot]'``). Without it, the figures that a
+command writes by default (``demo``, ``bench``, ``register``) are skipped with one
+``figure skipped: …`` line on stderr and exit status 0; ``posegraph --plot`` asks for one
+explicitly and stops with status 2 before solving.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import math
 import sys
-from pathlib import Path
+from collections.abc import Callable, Iterable, Sequence
+from typing import NoReturn
 
-__all__ = ["main"]
+__all__ = [
+    "EXIT_FAILED",
+    "EXIT_INTERRUPTED",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "Parser",
+    "add_common_options",
+    "float_range",
+    "int_range",
+    "main",
+    "solve_exit_status",
+]
 
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number ≥ 0, got {text!r}") from None
-    if not value >= 0:  # also rejects NaN
-        raise argparse.ArgumentTypeError(f"expected a number ≥ 0, got {text}")
-    return value
-
-
-def _fraction(text: str) -> float:
-    value = _non_negative_float(text)
-    if not 0 < value <= 1:
-        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1], got {text}")
-    return value
+# Loggers of the library (documented in the README's "Logging" paragraph).
+LOGGERS = ("torchslam.solver", "torchslam.posegraph")
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line on stderr (no usage block), exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def int_range(low: int, high: int) -> Callable[[str], int]:
+    """argparse ``type``: a decimal integer in [low, high]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 10)
+        except ValueError:
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"expected an integer in [{low}, {high}], got {text!r}"
+            )
+        return value
+
+    parse.__name__ = "integer"  # argparse names the type in some messages
+    return parse
+
+
+def float_range(low: float, high: float, *, low_open: bool = False) -> Callable[[str], float]:
+    """argparse ``type``: a finite number in [low, high] (or (low, high] with ``low_open``)."""
+    interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        above = value > low if low_open else value >= low
+        if not (math.isfinite(value) and above and value <= high):  # also rejects NaN
+            raise argparse.ArgumentTypeError(f"expected a number in {interval}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def add_common_options(parser: argparse.ArgumentParser, *, top_level: bool = False) -> None:
+    """``--quiet``, ``--verbose`` and ``--version``.
+
+    On a subcommand the defaults are suppressed, so that ``torchslam --quiet demo`` and
+    ``torchslam demo --quiet`` both work (a subparser's default would overwrite the value the
+    top-level parser set).
+    """
+    from torchslam import __version__
+
+    default = False if top_level else argparse.SUPPRESS
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default,
+        help="print nothing but warnings and errors (on stderr)",
+    )
+    group.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        default=default,
+        help=f"also print the library's log records ({', '.join(LOGGERS)}) on stderr",
+    )
+    parser.add_argument("--version", action="version", version=f"torchslam {__version__}")
+
+
+def solve_exit_status(
+    statuses: Iterable, warn: Callable[[str], None], what: str = "the solve"
+) -> int:
+    """Exit status of solves (module docstring): 1 if any failed, else 0 (with a warning for
+    any that stopped without converging). ``statuses``: ``torchslam.solver.Status`` values or
+    their names."""
+    from torchslam.solver import Status
+
+    statuses = [Status[s] if isinstance(s, str) else Status(int(s)) for s in statuses]
+    failed = sorted(
+        {s.name for s in statuses if s in (Status.NON_FINITE, Status.LINEAR_SOLVE_FAILED)}
+    )
+    stopped = sorted({s.name for s in statuses if not s.converged} - set(failed))
+    if failed:
+        warn(f"error: {what} failed: status {', '.join(failed)}")
+        return EXIT_FAILED
+    if stopped:
+        warn(f"warning: {what} stopped without converging: status {', '.join(stopped)}")
+    return EXIT_OK
+
+
+def _parser() -> Parser:
+    parser = Parser(
         prog="torchslam",
         description="ICP-SLAM as batched, differentiable least squares on SE(3).",
+        epilog="Exit status: 0 success, 1 a solve failed (NON_FINITE, LINEAR_SOLVE_FAILED), "
+        "2 bad arguments or input files, 130 interrupted.",
     )
+    add_common_options(parser, top_level=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
@@ -56,24 +164,12 @@ def _parser() -> argparse.ArgumentParser:
         help="solve a synthetic looping ICP-SLAM scene with LM and plot it",
         description="Generate a looping synthetic scene with noise and drifted odometry, solve "
         "it with Levenberg-Marquardt (one progress line per iteration), print a summary table "
-        "and write demo.png.",
+        "and write demo.png (needs matplotlib; skipped with a message without it).",
     )
-    demo.add_argument("--poses", type=_positive_int, default=40, help="frames (default 40)")
-    demo.add_argument("--points", type=_positive_int, default=2000, help="points (default 2000)")
-    demo.add_argument(
-        "--visible-fraction", type=_fraction, default=0.15, help="points seen per frame (0.15)"
-    )
-    demo.add_argument("--noise", type=_non_negative_float, default=0.01, help="noise std, m")
-    demo.add_argument(
-        "--drift-deg", type=_non_negative_float, default=2.0, help="odometry error, °/step (2)"
-    )
-    demo.add_argument(
-        "--drift-translation", type=_non_negative_float, default=0.05, help="m/step (0.05)"
-    )
-    demo.add_argument("--batch-size", type=_positive_int, default=1, help="problems (default 1)")
-    demo.add_argument("--jacobian", choices=["analytic", "jacrev"], default="analytic")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
+    from torchslam.demo import add_arguments as add_demo_arguments
+
+    add_demo_arguments(demo)
+    add_common_options(demo)
 
     bench = sub.add_parser(
         "bench",
@@ -84,6 +180,7 @@ def _parser() -> argparse.ArgumentParser:
     from torchslam.benchmark import add_arguments
 
     add_arguments(bench)
+    add_common_options(bench)
 
     posegraph = sub.add_parser(
         "posegraph",
@@ -93,26 +190,11 @@ def _parser() -> argparse.ArgumentParser:
         "(one progress line per iteration), print the costs before and after, optionally "
         "write the optimized graph and a figure of the trajectory before and after.",
     )
-    posegraph.add_argument("file", type=Path, help="the g2o file")
-    posegraph.add_argument("--out", type=Path, help="write the optimized graph (g2o) here")
-    posegraph.add_argument(
-        "--plot", type=Path, help="write a figure (x-y, x-z, cost) here, e.g. trajectory.png"
-    )
-    posegraph.add_argument(
-        "--init",
-        choices=["file", "odometry", "chordal"],
-        default="file",
-        help="initial poses: the file's vertices (default), the odometry chain, or chordal",
-    )
-    posegraph.add_argument(
-        "--max-iterations", type=_positive_int, default=100, help="LM iterations (100)"
-    )
-    posegraph.add_argument(
-        "--linear-solver", choices=["auto", "sparse", "dense"], default="auto", help="(auto)"
-    )
-    posegraph.add_argument(
-        "--threads", type=_positive_int, default=1, help="torch CPU threads (default 1)"
-    )
+    from torchslam.posegraph.command import add_arguments as add_posegraph_arguments
+
+    add_posegraph_arguments(posegraph)
+    add_common_options(posegraph)
+
     register = sub.add_parser(
         "register",
         help="register range scans (PLY) by pairwise ICP + joint ICP-SLAM",
@@ -123,60 +205,92 @@ def _parser() -> argparse.ArgumentParser:
     from torchslam.register import add_arguments as add_register_arguments
 
     add_register_arguments(register)
+    add_common_options(register)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``torchslam`` console script; returns the exit status."""
-    parser = _parser()
-    args = parser.parse_args(argv)
-    try:
-        if args.command == "demo":
-            from torchslam.demo import DemoOptions, run_demo
+class _Logging:
+    """``--verbose``: the library's log records (DEBUG and up) on stderr, for one run."""
 
-            run_demo(
-                DemoOptions(
-                    num_poses=args.poses,
-                    num_points=args.points,
-                    visible_fraction=args.visible_fraction,
-                    noise=args.noise,
-                    drift_deg=args.drift_deg,
-                    drift_translation=args.drift_translation,
-                    batch_size=args.batch_size,
-                    jacobian=args.jacobian,
-                    seed=args.seed,
-                    out=args.out,
-                )
-            )
-        elif args.command == "bench":
+    def __init__(self, verbose: bool) -> None:
+        self.verbose = verbose
+        self.logger = logging.getLogger("torchslam")
+        self.handler = logging.StreamHandler(sys.stderr)
+        self.handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+        self.level = self.logger.level
+
+    def __enter__(self) -> _Logging:
+        if self.verbose:
+            self.logger.addHandler(self.handler)
+            self.logger.setLevel(logging.DEBUG)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.verbose:
+            self.logger.removeHandler(self.handler)
+            self.logger.setLevel(self.level)
+
+
+def run_guarded(prog: str, body: Callable[[], int]) -> int:
+    """Run a command body; turn bad input into one line on stderr and an exit status."""
+    try:
+        return body()
+    except (ValueError, TypeError, OSError) as error:
+        print(f"{prog}: error: {_one_line(error)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        print(f"{prog}: error: out of memory (try smaller sizes)", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split()) or type(error).__name__
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``torchslam`` console script; returns the exit status (argparse's
+    exits for errors, ``--help`` and ``--version`` included: nothing raises SystemExit)."""
+    parser = _parser()
+    try:
+        args = parser.parse_args(argv)
+        quiet, verbose = getattr(args, "quiet", False), getattr(args, "verbose", False)
+        if quiet and verbose:
+            parser.error("--quiet and --verbose exclude each other")
+    except SystemExit as exit_:
+        code = exit_.code
+        return EXIT_OK if code is None else code if isinstance(code, int) else EXIT_USAGE
+    prog = f"torchslam {args.command}"
+    echo: Callable[[str], None] = (lambda _line: None) if quiet else print
+
+    def warn(line: str) -> None:
+        print(f"{prog}: {line}", file=sys.stderr)
+
+    def body() -> int:
+        if args.command == "demo":
+            from torchslam.demo import options_from_args, run_demo
+
+            result = run_demo(options_from_args(args), echo=echo, warn=warn)
+            return solve_exit_status(result.status, warn)
+        if args.command == "bench":
             from torchslam.benchmark import run
 
-            run(args)
-        elif args.command == "posegraph":
-            from torchslam.posegraph.command import PoseGraphOptions, run_posegraph
+            rows = run(args, echo=echo, warn=warn)
+            statuses = [s for row in rows for s in row["status"]]
+            return solve_exit_status(statuses, warn, "a benchmark solve")
+        if args.command == "posegraph":
+            from torchslam.posegraph.command import options_from_args, run_posegraph
 
-            run_posegraph(
-                PoseGraphOptions(
-                    path=args.file,
-                    out=args.out,
-                    plot=args.plot,
-                    init=args.init,
-                    max_iterations=args.max_iterations,
-                    linear_solver=args.linear_solver,
-                    threads=args.threads,
-                )
-            )
-        elif args.command == "register":
-            from torchslam.register import run as run_register
+            result = run_posegraph(options_from_args(args), echo=echo)
+            return solve_exit_status([result.status], warn)
+        from torchslam.register import run as run_register
 
-            return run_register(args)
-    except (ValueError, TypeError, OSError) as error:
-        print(f"torchslam {args.command}: error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"torchslam {args.command}: interrupted", file=sys.stderr)
-        return 130
-    return 0
+        return run_register(args, echo=echo, warn=warn)
+
+    with _Logging(verbose):
+        return run_guarded(prog, body)
 
 
 if __name__ == "__main__":

@@ -8,19 +8,38 @@ printing one progress line per iteration, then prints a summary table and writes
 
 from __future__ import annotations
 
+import argparse
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from torchslam import initialization, metrics
+from torchslam import _plotting, initialization, metrics
 from torchslam.data import make_scene
 from torchslam.problem import PointMapProblem
 from torchslam.solver import SolverConfig, solve
 from torchslam.solver.result import SolveResult
 
-__all__ = ["DemoOptions", "run_demo"]
+__all__ = ["LIMITS", "DemoOptions", "add_arguments", "options_from_args", "run_demo", "validate"]
+
+# Accepted ranges of the options (inclusive; --visible-fraction excludes 0). The scene is a
+# loop of radius ~4 m, so noise and drift beyond these bounds make no sense; the sizes keep
+# the dense 6m × 6m Schur system and the (B, m, n) scene tensors within a few GiB.
+LIMITS = {
+    "poses": (3, 1000),
+    "points": (3, 1_000_000),
+    "visible_fraction": (0.0, 1.0),
+    "noise": (0.0, 1.0),
+    "drift_deg": (0.0, 45.0),
+    "drift_translation": (0.0, 1.0),
+    "batch_size": (1, 256),
+    "seed": (0, 2**32 - 1),
+}
+# Largest batch_size × poses × points.
+MAX_SCENE_SIZE = 10**8
 
 
 @dataclass(frozen=True)
@@ -48,31 +67,117 @@ class DemoOptions:
     out: Path = Path("out")
 
 
-def _positive(name: str, value: float) -> None:
-    if not value > 0:
-        raise ValueError(f"{name} must be > 0, got {value}")
-
-
 def validate(options: DemoOptions) -> None:
-    """Raise ValueError with a one-line message for an impossible option value."""
-    _positive("--poses", options.num_poses)
-    _positive("--points", options.num_points)
-    _positive("--batch-size", options.batch_size)
-    if options.num_poses < 3:
-        raise ValueError(f"--poses must be ≥ 3, got {options.num_poses}")
-    if not 0 < options.visible_fraction <= 1:
-        raise ValueError(f"--visible-fraction must be in (0, 1], got {options.visible_fraction}")
-    if options.noise < 0:
-        raise ValueError(f"--noise must be ≥ 0, got {options.noise}")
-    if options.drift_deg < 0 or options.drift_translation < 0:
-        raise ValueError("--drift-deg and --drift-translation must be ≥ 0")
+    """Raise ValueError with a one-line message for an impossible option value (:data:`LIMITS`)."""
+    for name, (low, high) in LIMITS.items():
+        value = getattr(options, "num_" + name if name in ("poses", "points") else name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TypeError(f"--{name.replace('_', '-')} must be a number, got {value!r}")
+        inside = low < value <= high if name == "visible_fraction" else low <= value <= high
+        if not inside:  # also rejects NaN
+            interval = f"{'(' if name == 'visible_fraction' else '['}{low:g}, {high:g}]"
+            raise ValueError(f"--{name.replace('_', '-')} must be in {interval}, got {value}")
+    size = options.batch_size * options.num_poses * options.num_points
+    if size > MAX_SCENE_SIZE:
+        raise ValueError(
+            f"--batch-size × --poses × --points must be ≤ {MAX_SCENE_SIZE:.0e}, got {size:.3g}"
+        )
     if options.jacobian not in ("analytic", "jacrev"):
         raise ValueError(f"--jacobian must be 'analytic' or 'jacrev', got {options.jacobian!r}")
 
 
-def run_demo(options: DemoOptions, echo=print) -> SolveResult:
-    """Run the demo, printing progress through ``echo``; returns the solve result."""
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``torchslam demo`` (ranges: :data:`LIMITS`)."""
+    from torchslam.cli import float_range, int_range
+
+    def limits(name: str) -> str:
+        low, high = LIMITS[name]
+        return f"{'(' if name == 'visible_fraction' else '['}{low:g}, {high:g}]"
+
+    def integer(name: str):
+        return int_range(*LIMITS[name])
+
+    def number(name: str, **kwargs):
+        return float_range(*LIMITS[name], **kwargs)
+
+    parser.add_argument(
+        "--poses", type=integer("poses"), default=40, help=f"frames {limits('poses')} (40)"
+    )
+    parser.add_argument(
+        "--points", type=integer("points"), default=2000, help=f"points {limits('points')} (2000)"
+    )
+    parser.add_argument(
+        "--visible-fraction",
+        type=number("visible_fraction", low_open=True),
+        default=0.15,
+        help=f"fraction of the points each frame sees {limits('visible_fraction')} (0.15)",
+    )
+    parser.add_argument(
+        "--noise", type=number("noise"), default=0.01, help=f"noise std, m {limits('noise')} (0.01)"
+    )
+    parser.add_argument(
+        "--drift-deg",
+        type=number("drift_deg"),
+        default=2.0,
+        help=f"odometry error, °/step {limits('drift_deg')} (2)",
+    )
+    parser.add_argument(
+        "--drift-translation",
+        type=number("drift_translation"),
+        default=0.05,
+        help=f"odometry error, m/step {limits('drift_translation')} (0.05)",
+    )
+    parser.add_argument(
+        "--batch-size",
+        type=integer("batch_size"),
+        default=1,
+        help=f"independent problems {limits('batch_size')} (1); batch × poses × points ≤ 1e8",
+    )
+    parser.add_argument("--jacobian", choices=["analytic", "jacrev"], default="analytic")
+    parser.add_argument("--seed", type=integer("seed"), default=0, help="random seed (0)")
+    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
+
+
+def options_from_args(args: argparse.Namespace) -> DemoOptions:
+    """The :class:`DemoOptions` of parsed ``torchslam demo`` arguments."""
+    return DemoOptions(
+        num_poses=args.poses,
+        num_points=args.points,
+        visible_fraction=args.visible_fraction,
+        noise=args.noise,
+        drift_deg=args.drift_deg,
+        drift_translation=args.drift_translation,
+        batch_size=args.batch_size,
+        jacobian=args.jacobian,
+        seed=args.seed,
+        out=args.out,
+    )
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def run_demo(
+    options: DemoOptions,
+    echo: Callable[[str], None] = print,
+    warn: Callable[[str], None] = _stderr,
+) -> SolveResult:
+    """Run the demo, printing progress through ``echo``; returns the solve result.
+
+    The figure needs matplotlib; without it one line ``figure skipped: …`` goes to ``warn``.
+
+    Raises:
+        ValueError: an option outside :data:`LIMITS`.
+        OSError: the output folder cannot be created or written.
+    """
     validate(options)
+    try:  # the figure's folder first: a bad --out is an error before the solve, not after it
+        _plotting.require_matplotlib()
+    except _plotting.MatplotlibMissingError:
+        pass
+    else:
+        options.out.mkdir(parents=True, exist_ok=True)
     scene = make_scene(
         options.num_poses,
         options.num_points,
@@ -138,20 +243,17 @@ def run_demo(options: DemoOptions, echo=print) -> SolveResult:
         f"solve: {elapsed * 1e3:.1f} ms, {int(result.iterations.max())} iterations, "
         f"status {result.status[0].name} ({result.reason[0]})"
     )
-    path = _figure(scene, init.poses, result, options.out)
-    if path is not None:
+    try:
+        path = _figure(scene, init.poses, result, options.out)
+    except _plotting.MatplotlibMissingError as error:
+        warn(f"figure skipped: {error}")
+    else:
         echo(f"wrote {path}")
     return result
 
 
-def _figure(scene, initial_poses: torch.Tensor, result: SolveResult, out: Path) -> Path | None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return None
+def _figure(scene, initial_poses: torch.Tensor, result: SolveResult, out: Path) -> Path:
+    plt = _plotting.require_pyplot()
     out.mkdir(parents=True, exist_ok=True)
 
     def positions(T: torch.Tensor) -> torch.Tensor:  # sensor positions: translation of T_0i

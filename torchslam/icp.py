@@ -264,6 +264,29 @@ class ICPResult:
             return _REASONS[codes[0]]
         return [_REASONS[c] for c in codes]
 
+    @property
+    def status_name(self) -> str | list[str]:
+        """:class:`ICPStatus` names, e.g. ``"CONVERGED"``: a string for a single run, a flat
+        list for a batch."""
+        names = [ICPStatus(int(c)).name for c in self.status.reshape(-1)]
+        return names[0] if self.status.dim() == 0 else names
+
+    def __repr__(self) -> str:
+        if self.status.dim() == 0:
+            return (
+                f"ICPResult(status={self.status_name}, iterations={int(self.iterations)}, "
+                f"rms={float(self.rms):.6g}, fitness={float(self.fitness):.4g}, "
+                f"gate={float(self.gate):.6g}, transform={self.transform!r})"
+            )
+        counts: dict[str, int] = {}
+        for name in self.status_name:
+            counts[name] = counts.get(name, 0) + 1
+        return (
+            f"ICPResult(batch_shape={tuple(self.status.shape)}, status={counts}, "
+            f"iterations≤{int(self.iterations.max()) if self.iterations.numel() else 0}, "
+            f"best rms={float(self.rms.min()) if self.rms.numel() else math.nan:.6g})"
+        )
+
     def __getitem__(self, index: int) -> ICPResult:
         """The result of one batch entry (batch shape (B,) → ())."""
         return ICPResult(
@@ -680,9 +703,15 @@ def register_coarse_to_fine(
     hypotheses = initial
     per_stage: list[ICPResult] = []
     best: ICPResult | None = None
-    for stage in stages:
+    for level, stage in enumerate(stages):
         src = voxel_downsample(source, stage.voxel_size) if stage.voxel_size > 0 else source
         tgt = voxel_downsample(target, stage.voxel_size) if stage.voxel_size > 0 else target
+        if min(src.shape[0], tgt.shape[0]) < 3:
+            raise ValueError(
+                f"{fn}: level {level} (voxel size {stage.voxel_size:g}) leaves "
+                f"{src.shape[0]} source and {tgt.shape[0]} target points, need ≥ 3 each; use a "
+                "smaller voxel size"
+            )
         normals = None
         if stage.config.method == "point_to_plane":
             normals = estimate_normals(tgt, min(stage.normal_neighbors, tgt.shape[0]))

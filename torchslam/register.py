@@ -48,6 +48,7 @@ import argparse
 import itertools
 import math
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -59,7 +60,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from torchslam import icp
+from torchslam import _plotting, icp
+from torchslam.io import _text
 from torchslam.io.ply import read_ply_points, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
 from torchslam.lie import convert, se3
@@ -292,34 +294,41 @@ def write_poses(
 def read_poses(
     path: str | os.PathLike, *, dtype: torch.dtype = torch.float64
 ) -> tuple[list[str], Tensor]:
-    """Read a pose file of :func:`write_poses`: ``(names, T_0i of shape (m, 4, 4))``."""
-    names, rows = [], []
-    with open(path, encoding="utf-8") as f:
-        for number, raw in enumerate(f, start=1):
-            words = raw.split()
-            if not words or words[0].startswith("#"):
-                continue
-            if len(words) != 8:
-                raise ValueError(
-                    f"read_poses: {os.fspath(path)}: line {number}: expected 'name tx ty tz "
-                    f"qw qx qy qz', got {len(words)} fields"
-                )
-            try:
-                values = [float(v) for v in words[1:]]
-            except ValueError:
-                raise ValueError(
-                    f"read_poses: {os.fspath(path)}: line {number}: not a number"
-                ) from None
-            names.append(words[0])
-            rows.append(values)
+    """Read a pose file of :func:`write_poses`: ``(names, T_0i of shape (m, 4, 4))``.
+
+    Raises:
+        ValueError: a malformed line (field count, a number that is not a finite decimal, a
+            zero quaternion), a repeated name, no poses, bytes that are not UTF-8 text; the
+            message names the file and the line.
+        OSError: the file cannot be read.
+    """
+    fn, where = "read_poses", os.fspath(path)
+    with open(path, "rb") as f:
+        lines = _text.decode_lines(f.read(), path, fn, "text pose file")
+    names: list[str] = []
+    rows: list[list[float]] = []
+    for number, raw in enumerate(lines, start=1):
+        words = raw.split()
+        if not words or words[0].startswith("#"):
+            continue
+        if len(words) != 8:
+            raise ValueError(
+                f"{fn}: {where}: line {number}: expected 'name tx ty tz qw qx qy qz', got "
+                f"{len(words)} fields"
+            )
+        try:
+            values = [_text.parse_finite_float(v) for v in words[1:]]
+            q = _text.unit_quaternion(values[3:], "quaternion (qw, qx, qy, qz)")
+        except _text.TokenError as error:
+            raise ValueError(f"{fn}: {where}: line {number}: {error}") from None
+        if words[0] in names:
+            raise ValueError(f"{fn}: {where}: line {number}: scan {words[0]!r} listed twice")
+        names.append(words[0])
+        rows.append([*values[:3], *q])
     if not rows:
-        raise ValueError(f"read_poses: {os.fspath(path)}: no poses")
+        raise ValueError(f"{fn}: {where}: no poses")
     values_t = torch.tensor(rows, dtype=dtype)
-    q = values_t[:, 3:]
-    norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-    if not bool((norm > 0).all()):
-        raise ValueError(f"read_poses: {os.fspath(path)}: zero quaternion")
-    R = convert.quaternion_to_matrix(q / norm)
+    R = convert.quaternion_to_matrix(values_t[:, 3:])
     return names, se3.from_rotation_translation(R, values_t[:, :3])
 
 
@@ -376,8 +385,8 @@ def register_chain(
             # Successive scans that share less than a fifth of their points rarely register.
             warning = " (low: do these scans overlap?)" if fitness < 0.2 else ""
             progress(
-                f"{label} ({k + 1}/{len(clouds) - 1}): fitness {fitness:.3f}{warning}, "
-                f"rms {float(best.rms):.3g}, {seconds[-1]:.1f} s"
+                f"{label} ({k + 1}/{len(clouds) - 1}): {best.status_name.lower()}, fitness "
+                f"{fitness:.3f}{warning}, rms {float(best.rms):.3g}, {seconds[-1]:.1f} s"
             )
     relative_t = torch.stack(relative)
     return ChainResult(relative_t, icp.chain_poses(relative_t), results, seconds)
@@ -778,6 +787,7 @@ def register(
         frame = names.index(frame)
     if not 0 <= frame < len(names):
         raise ValueError(f"register: reference index {frame} out of range")
+    _check_point_counts(names, clouds, config)
     say = progress or (lambda _line: None)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -830,6 +840,24 @@ def register(
         config.voxel_size,
         seconds,
     )
+
+
+def _check_point_counts(
+    names: Sequence[str], clouds: Sequence[Tensor], config: RegisterConfig
+) -> None:
+    """Every scan keeps enough points at every voxel size of the pipeline (ValueError)."""
+    sizes = sorted({s.voxel_size for s in config.pairwise_stages()} | {config.voxel_size})
+    # ICP needs 3 points and stops at fewer than min_correspondences (6 by default) matches.
+    need = max([3, *(s.config.min_correspondences for s in config.pairwise_stages())])
+    for name, cloud in zip(names, clouds, strict=True):
+        for size in sizes:
+            count = len(icp.voxel_downsample(cloud, size)) if size > 0 else len(cloud)
+            if count < need:
+                raise ValueError(
+                    f"register: scan {name!r} keeps {count} of {len(cloud)} points on a "
+                    f"{size:g} voxel grid, need ≥ {need}; use a smaller voxel size "
+                    "(--voxel-size)"
+                )
 
 
 # ----------------------------------------------------------------------------- reporting
@@ -924,11 +952,11 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     doubled contours; and two diagnostics: the histogram of point-to-plane distances between
     overlapping scans (chained and joint, row 1) and the change of every pose from chained to
     joint (row 2: rotation in degrees, translation in mm).
-    """
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Raises:
+        torchslam._plotting.MatplotlibMissingError: matplotlib is not installed.
+    """
+    plt = _plotting.require_pyplot()
 
     reg = registration
     colors = scan_colors(len(reg.names)) / 255.0
@@ -1019,6 +1047,8 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam register``."""
+    from torchslam.cli import float_range, int_range
+
     parser.add_argument("scans", nargs="+", type=Path, help="PLY scans in chain order (≥ 2)")
     parser.add_argument(
         "--reference", type=Path, default=None, help="Stanford .conf alignment to compare with"
@@ -1028,18 +1058,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frame", default=None, help="scan whose frame the poses are in (default: the first)"
     )
     parser.add_argument(
-        "--voxel-size", type=float, default=0.002, help="finest voxel pitch, scan units (0.002)"
+        "--voxel-size",
+        type=float_range(0.0, 1e6, low_open=True),
+        default=0.002,
+        help="finest voxel pitch, scan units (0, 1e6] (0.002)",
     )
-    parser.add_argument("--hypotheses", type=int, default=128, help="starts per pair (128)")
-    parser.add_argument("--rounds", type=int, default=4, help="joint rounds at most (4)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument(
+        "--hypotheses", type=int_range(1, 10_000), default=128, help="starts per pair (128)"
+    )
+    parser.add_argument(
+        "--rounds", type=int_range(0, 100), default=4, help="joint rounds at most [0, 100] (4)"
+    )
+    parser.add_argument(
+        "--threads", type=int_range(1, 1024), default=1, help="torch threads [1, 1024] (1)"
+    )
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``torchslam register``: progress lines, poses, merged PLY, PNG, optional table."""
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def run(
+    args: argparse.Namespace,
+    echo: Callable[[str], None] = print,
+    warn: Callable[[str], None] = _stderr,
+) -> int:
+    """Run ``torchslam register``: progress lines, poses, merged PLY, PNG, optional table.
+
+    Returns the exit status: 0, or 1 when a joint solve ended ``NON_FINITE`` or
+    ``LINEAR_SOLVE_FAILED`` (outputs are still written; :mod:`torchslam.cli`). Without
+    matplotlib the figure is skipped with one ``figure skipped: …`` line through ``warn``.
+
+    Raises:
+        ValueError: bad option values or input files. OSError: unreadable or unwritable files.
+    """
     if args.threads < 1:
         raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
-    if not args.voxel_size > 0:
+    if not (args.voxel_size > 0 and math.isfinite(args.voxel_size)):
         raise ValueError(f"--voxel-size must be > 0, got {args.voxel_size}")
     if args.hypotheses < 1:
         raise ValueError(f"--hypotheses must be ≥ 1, got {args.hypotheses}")
@@ -1051,18 +1106,27 @@ def run(args: argparse.Namespace) -> int:
     frame = expected[0] if args.frame is None else args.frame
     if frame not in expected:
         raise ValueError(f"--frame {frame!r} is not among the scans ({', '.join(expected)})")
+    if args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out} exists and is not a directory")
     config = RegisterConfig(
         voxel_size=args.voxel_size, hypotheses=args.hypotheses, rounds=args.rounds
     )
     threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
     try:
-        return _run(args, config, expected, frame)
+        return _run(args, config, expected, frame, echo, warn)
     finally:
         torch.set_num_threads(threads)
 
 
-def _run(args: argparse.Namespace, config: RegisterConfig, expected: list[str], frame: str) -> int:
+def _run(
+    args: argparse.Namespace,
+    config: RegisterConfig,
+    expected: list[str],
+    frame: str,
+    echo: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> int:
     start = time.perf_counter()
     reference = None
     if args.reference is not None:
@@ -1072,22 +1136,19 @@ def _run(args: argparse.Namespace, config: RegisterConfig, expected: list[str], 
         missing = [n for n in expected if n not in reference]
         if missing:
             raise ValueError(f"{args.reference}: no pose for scan(s) {', '.join(missing)}")
-    print(f"[1/5] reading {len(args.scans)} scans …", flush=True)
+    echo(f"[1/5] reading {len(args.scans)} scans …")
     names, clouds = load_scans(args.scans)
-    print(
-        f"      {', '.join(f'{n} ({len(c)})' for n, c in zip(names, clouds, strict=True))}",
-        flush=True,
-    )
+    echo(f"      {', '.join(f'{n} ({len(c)})' for n, c in zip(names, clouds, strict=True))}")
     stage = iter(("[2/5]", "[3/5]", "[4/5]"))
 
     def progress(line: str) -> None:
         prefix = "     " if line.startswith(" ") else next(stage, "     ")
-        print(f"{prefix} {line}", flush=True)
+        echo(f"{prefix} {line}")
 
     registration = register(names, clouds, config, frame=frame, progress=progress)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    print(f"[5/5] writing {out} …", flush=True)
+    echo(f"[5/5] writing {out} …")
     write_poses(out / "poses.txt", names, registration.poses, frame=frame)
     write_poses(out / "poses_chained.txt", names, registration.chained, frame=frame)
     points, colors = merged_cloud(registration.clouds, registration.poses)
@@ -1096,12 +1157,15 @@ def _run(args: argparse.Namespace, config: RegisterConfig, expected: list[str], 
         for n, c in zip(names, scan_colors(len(names)), strict=True)
     ]
     write_ply(out / "merged.ply", points, colors, coordinate_type="float", comments=legend)
-    plot_registration(registration, out / "registration.png")
-    print(
-        f"      poses.txt, poses_chained.txt, merged.ply ({len(points)} points), registration.png",
-        flush=True,
-    )
-    print(
+    written = ["poses.txt", "poses_chained.txt", f"merged.ply ({len(points)} points)"]
+    try:
+        plot_registration(registration, out / "registration.png")
+    except _plotting.MatplotlibMissingError as error:
+        warn(f"figure skipped: {error}")
+    else:
+        written.append("registration.png")
+    echo(f"      {', '.join(written)}")
+    echo(
         f"point-to-plane RMS between overlapping scans: chained "
         f"{registration.residual_chained:.4g} → joint {registration.residual_joint:.4g}"
     )
@@ -1113,24 +1177,25 @@ def _run(args: argparse.Namespace, config: RegisterConfig, expected: list[str], 
             reference_poses,
             {"chain": registration.chained, "joint": registration.poses},
         )
-        print(f"errors vs {args.reference} in the frame of {frame} (mm assumes metres):")
-        print(text)
-    print(f"total {time.perf_counter() - start:.1f} s")
-    return 0
+        echo(f"errors vs {args.reference} in the frame of {frame} (mm assumes metres):")
+        echo(text)
+    echo(f"total {time.perf_counter() - start:.1f} s")
+    for pair, result in zip(
+        itertools.pairwise(names), registration.chain.pair_results, strict=True
+    ):
+        if int(result.status) == icp.ICPStatus.TOO_FEW_CORRESPONDENCES:
+            warn(f"warning: pairwise ICP {pair[0]} ← {pair[1]}: {result.reason}")
+    from torchslam.cli import solve_exit_status
+
+    statuses = [info.status for info in registration.refinement.rounds]
+    return solve_exit_status(statuses, warn, "a joint solve")
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m torchslam.register``: the same as ``torchslam register``."""
-    import sys
+    from torchslam import cli
 
-    parser = argparse.ArgumentParser(prog="torchslam register", description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return run(args)
-    except (ValueError, TypeError, OSError) as error:
-        print(f"torchslam register: error: {error}", file=sys.stderr)
-        return 2
+    return cli.main(["register", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -280,7 +280,7 @@ class Term:
         new.pose_index = torch.where(new.valid[..., None], new.pose_index, 0)
         if new.num_instances > 0:
             r = new.residual(
-                se3.identity(1, new.arity, dtype=like.dtype, device=like.device),
+                se3.identity(1, 1, new.arity, dtype=like.dtype, device=like.device),
                 **{k: v[:1, :1] for k, v in new.constants.items()},
             )
             if r.dim() != 3 or tuple(r.shape[:2]) != (1, 1):

@@ -122,7 +122,7 @@ def test_ascii_and_binary_agree_on_mixed_properties(tmp_path):
 def test_write_read_round_trip(tmp_path, generator, fmt, coordinate_type, with_colors):
     points = torch.randn(50, 3, generator=generator, dtype=torch.float64)
     if coordinate_type == "double":
-        points[0] = torch.tensor([1e-300, -1e300, 0.1])  # extreme but finite
+        points[0] = torch.tensor([1e-300, -1e300, 0.1], dtype=torch.float64)  # extreme, finite
     colors = torch.randint(0, 256, (50, 3), generator=generator) if with_colors else None
     path = tmp_path / "cloud.ply"
     write_ply(path, points, colors, format=fmt, coordinate_type=coordinate_type, comments=["hello"])
@@ -200,7 +200,7 @@ def test_truncated_ascii_names_element(tmp_path):
     ("bad_line", "message"),
     [
         ("0.5 -1.25", "line 15 \\(element 'vertex'\\): expected 3 values, got 2"),
-        ("0.5 -1.25 abc", "line 15 \\(element 'vertex'\\): not a number: 'abc'"),
+        ("0.5 -1.25 abc", "line 15 \\(element 'vertex'\\): expected a number, got 'abc'"),
     ],
 )
 def test_malformed_ascii_vertex_names_line(tmp_path, bad_line, message):
@@ -218,7 +218,8 @@ def test_misaligned_ascii_vertex_lines_are_caught(tmp_path):
 
 def test_malformed_ascii_list_names_line(tmp_path):
     content = STANFORD_ASCII.replace("1 1\n", "2 1\n")
-    with pytest.raises(ValueError, match="line 18 \\(element 'range_grid'\\): too few values"):
+    message = r"line 18 \(element 'range_grid'\): list 'vertex_indices': expected 2 values, got 1"
+    with pytest.raises(ValueError, match=message):
         read_ply(_write(tmp_path, "bad.ply", content))
     content = STANFORD_ASCII.replace("1 1\n", "1 1 5\n")
     with pytest.raises(ValueError, match=r"line 18 .*1 unexpected extra value"):

@@ -202,3 +202,42 @@ def scipy_least_squares(
     result = scipy.optimize.least_squares(fun, x0, jac=jac, method=method, **options)
     _, T, X = unpack(result.x)
     return float(result.cost), T, X, result
+
+
+def solution_distance_bound(problem: torchslam.PointMapProblem, b: int) -> float:
+    """How far problem ``b``'s current estimate may lie from the exact minimizer, in the
+    right-perturbation chart (2-norm over the free poses' δ and the free points' ΔX).
+
+    A least-squares problem that is not exactly at its minimum x* is off by about one Newton
+    step, ‖x − x*‖ ≈ ‖H⁻¹ g(x)‖ (H = JᵀJ, g = Jᵀr; the second-order remainder is ≪ this near
+    x*). The gradient itself cannot be evaluated below the round-off of its sum, about
+    ε·‖|J|ᵀ|r|‖ (each product and partial sum rounds at relative ε, whatever the order or the
+    CPU's kernels), so the minimizer is only defined to ε·‖|J|ᵀ|r|‖ / σ_min(H). The bound is
+    the sum of the two, times 4 for the remainder terms neglected; it depends on the
+    problem's conditioning, not on the machine. For the small, point-observation-only
+    problems of these tests (the dense Jacobian is formed).
+    """
+    data = problem.data
+    free = torch.cat(
+        ((~data.fixed_poses[b]).repeat_interleave(6), (~data.fixed_points[b]).repeat_interleave(3))
+    )
+    with torch.no_grad():
+        J = problem.dense_jacobian()[b][:, free]
+        r = problem.residuals()[b].reshape(-1)
+    H = J.T @ J
+    g = J.T @ r
+    newton = torch.linalg.solve(H, g).norm()
+    sigma_min = torch.linalg.eigvalsh(H)[0]
+    eps = torch.finfo(H.dtype).eps
+    floor = eps * (J.abs().T @ r.abs()).norm() / sigma_min
+    return float(4 * (newton + floor))
+
+
+def solution_distance(a: torchslam.PointMapProblem, c: torchslam.PointMapProblem, b: int) -> float:
+    """Distance of problem ``b``'s estimates in ``a`` and ``c``, in the chart of
+    :func:`solution_distance_bound`: δ_i = Log(T_i,a⁻¹ T_i,c) for the poses, X_c − X_a for
+    the points (2-norm over all)."""
+    with torch.no_grad():
+        delta = se3.log(se3.inverse(a.poses()[b]) @ c.poses()[b])
+        dX = c.points[b] - a.points[b]
+    return float(torch.cat((delta.reshape(-1), dX.reshape(-1))).norm())

@@ -12,6 +12,7 @@ import torchslam
 from torchslam import SolverConfig, Status
 from torchslam.data.synthetic import benchmark_case
 from torchslam.initialization import initialize_scene
+from torchslam.lie import se3
 from torchslam.metrics import evaluate
 
 from . import (
@@ -87,8 +88,8 @@ def test_noisy_problem_reaches_scipy_least_squares_minimum(method, weighting):
 
 
 def test_lm_accepted_cost_never_increases_per_problem():
-    # Three problems with large drift (≥ 20°); a tiny λ₀ makes early Gauss-Newton-like steps
-    # fail, so the reject path (cost kept, λ raised) is exercised.
+    # Three problems with large drift (≥ 20°), each with its own λ: the cost history of every
+    # problem is non-increasing whatever steps its LM takes or rejects on this machine.
     scene, init = drifted(8, 60, batch_size=3, noise_std=0.01, rotation_noise_deg=8.0)
     assert max_rotation_drift_deg(init.poses, scene) >= 20.0
     for damping in ("marquardt", "levenberg"):
@@ -99,14 +100,57 @@ def test_lm_accepted_cost_never_increases_per_problem():
         history = result.cost_history
         assert torch.all(history[:, 1:] <= history[:, :-1])
         assert torch.all(result.final_cost < 0.5 * result.initial_cost)
-        # The callback saw the same costs, and at least one rejected step of an active problem
-        # that left the cost exactly unchanged.
+        # The callback saw the same costs; a step a running problem rejected left its cost
+        # exactly unchanged.
         costs = torch.stack([info["cost"] for info in seen], dim=1)
         torch.testing.assert_close(costs, history[:, 1:], rtol=0, atol=0)
-        rejected = [(~info["accepted"]) for info in seen]
-        assert any(bool(r.any()) for r in rejected)
-        lam = result.lambda_history
-        assert bool((lam[:, 1:] > lam[:, :-1]).any())
+        for k, info in enumerate(seen):
+            rejected = info["active"] & ~info["accepted"]  # still running, step not taken
+            assert torch.all(history[rejected, k + 1] == history[rejected, k])
+
+
+class _Cubic(torchslam.Term):
+    """r = (u³ − 1, ω) with u = t + u₀ (per axis): translation t and rotation vector ω of
+    one pose. From u₀ = 0.1 the Gauss-Newton step is δu = (1 − u₀³)/(3u₀²) = 33.3, and
+    ½|r|² at u = 33.4 is ~10¹³ times the start's; from u₀ = 0.5, δu = 7/6 and the cost
+    still rises 17-fold; from u₀ = 0.9 the step lands at u = 0.9905 and the cost falls
+    ~60-fold. These margins are orders of magnitude beyond any rounding, so every machine
+    must reject the first two steps and accept the third."""
+
+    def __init__(self, u0: torch.Tensor):
+        B = u0.shape[0]
+        pose_index = torch.ones(B, 1, 1, dtype=torch.int64)
+        super().__init__(pose_index, {"u0": u0[:, None, None].expand(B, 1, 3).clone()})
+
+    def residual(self, poses, u0):
+        T = poses[..., 0, :, :]
+        u = T[..., :3, 3] + u0
+        omega = se3.log(T)[..., :3]
+        return torch.cat((u**3 - 1, omega), -1)
+
+
+@pytest.mark.parametrize("damping", ["marquardt", "levenberg"])
+def test_lm_rejects_an_overshooting_step_and_raises_lambda_per_problem(damping):
+    u0 = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64)
+    B = u0.shape[0]
+    poses = torch.eye(4, dtype=torch.float64).expand(B, 2, 4, 4).clone()
+    none = torch.zeros(B, 0, dtype=torch.int64)
+    empty = poses.new_zeros(B, 0, 3)
+    problem = torchslam.PointMapProblem(poses, empty, none, none, empty, terms=[_Cubic(u0)])
+    seen = []
+    config = SolverConfig(damping=damping, initial_lambda=1e-12)
+    result = torchslam.solve(problem, config, callback=seen.append)
+    first = seen[0]
+    assert first["accepted"].tolist() == [False, False, True]
+    lam, history = result.lambda_history, result.cost_history
+    # Rejected: cost kept exactly, λ raised; accepted: cost lowered, λ lowered.
+    assert history[0, 1] == history[0, 0] and history[1, 1] == history[1, 0]
+    assert lam[0, 1] > lam[0, 0] and lam[1, 1] > lam[1, 0]
+    assert history[2, 1] < history[2, 0] / 10 and lam[2, 1] < lam[2, 0]
+    # Each problem still reaches u = 1, ω = 0 (cost ≈ 0) with its own damping.
+    assert all(result.converged), result.summary()
+    assert torch.all(history[:, 1:] <= history[:, :-1])
+    assert torch.all(result.final_cost < 1e-20)
 
 
 def test_gauss_newton_and_levenberg_marquardt_agree_on_a_well_conditioned_problem():

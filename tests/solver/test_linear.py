@@ -17,7 +17,14 @@ from torchslam.solver.linearize import (
     whitening_factors,
 )
 
-from . import TIGHT, drifted, ground_truth_errors, problem_from
+from . import (
+    TIGHT,
+    drifted,
+    ground_truth_errors,
+    problem_from,
+    solution_distance,
+    solution_distance_bound,
+)
 
 LAMBDAS = (0.0, 1e-3, 10.0)
 STEP_TOL = 1e-10
@@ -162,9 +169,9 @@ def test_block_schur_chunking_does_not_change_the_step():
 
 @pytest.mark.parametrize("weighting", ["unit", "information"])
 def test_schur_and_dense_solvers_reach_the_same_solution(weighting):
-    results = {}
+    results, problems = {}, {}
     for solver in ("schur", "dense"):
-        problem = _problem(weighting)[2]
+        problem = problems[solver] = _problem(weighting)[2]
         results[solver] = torchslam.solve(problem, SolverConfig(linear_solver=solver, **TIGHT))
         assert all(results[solver].converged), results[solver].summary()
     schur, dense = results["schur"], results["dense"]
@@ -173,8 +180,18 @@ def test_schur_and_dense_solvers_reach_the_same_solution(weighting):
         schur.cost_history[:, :4], dense.cost_history[:, :4], rtol=1e-10, atol=0
     )
     torch.testing.assert_close(schur.final_cost, dense.final_cost, rtol=1e-12, atol=0)
-    torch.testing.assert_close(schur.poses, dense.poses, rtol=0, atol=1e-9)
-    torch.testing.assert_close(schur.points, dense.points, rtol=0, atol=1e-9)
+    # Same minimizer, to the accuracy the problem's conditioning defines it: each solution is
+    # within a Newton step plus the gradient's round-off floor of x* (solution_distance_bound),
+    # so they are within the sum of both bounds of each other, on any machine.
+    for b in range(problems["schur"].batch_size):
+        bound = solution_distance_bound(problems["schur"], b) + solution_distance_bound(
+            problems["dense"], b
+        )
+        # LM stops where its accept test can no longer see a decrease (ΔF ≈ ε·F), about a
+        # Newton step (~1e-7 here) short of x*, at a point the machine's rounding decides:
+        # the two solutions agree to that bound, not to round-off.
+        assert bound < 1e-5  # still a meaningful comparison (poses and points are O(1))
+        assert solution_distance(problems["schur"], problems["dense"], b) <= bound
 
 
 @pytest.mark.parametrize("weighting", ["unit", "information"])

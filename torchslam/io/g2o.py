@@ -8,7 +8,9 @@ g2o's conventions and how they map to torchslam's
     EDGE_SE3:QUAT   i j  dx dy dz  dqx dqy dqz dqw  I11 I12 … I16 I22 … I66   (21 numbers)
 
 - Quaternions are Hamilton, written scalar LAST (qx, qy, qz, qw); torchslam stores (w, x, y, z).
-  They are normalized on reading (as g2o does); a zero quaternion is an error. On writing,
+  They are normalized on reading (as g2o does), robustly: divided by their largest magnitude
+  before the norm, so (1e200, 1e200, 0, 0) and (1e-200, 0, 0, 0) normalize exactly; a zero
+  quaternion is an error. On writing,
   the quaternion of each rotation matrix is written with qw ≥ 0.
 - A vertex (t, q) is the pose T_i = [[R(q), t], [0, 1]] mapping body-i points into the world.
 - An edge (i, j) measures the pose of j seen from i: Z_ij = T_ij ≈ T_i⁻¹ T_j, the same meaning as
@@ -39,9 +41,11 @@ Other rules
 - ``FIX id …`` lines record fixed vertices in ``PoseGraph.fixed`` (indices, not ids).
 - Tags in :data:`SKIPPED_TAGS` (parameter blocks, which only landmark edges use) are skipped.
   Every other tag (landmarks included) is an unknown tag and raises ValueError, as do a wrong
-  number of fields, a non-numeric or non-finite number, a non-integer id, a duplicate vertex id,
-  an edge to a missing vertex, and 2D and 3D lines in the same file. Every message names the
-  file and the line number.
+  number of fields, a non-numeric or non-finite number (``nan``, ``inf``, ``1e999``), an id
+  that is not a decimal integer in [0, 2⁶³ − 1], a duplicate vertex id, an edge to a missing
+  vertex, an information matrix that is not positive semidefinite, 2D and 3D lines in the same
+  file, and (for :func:`read_g2o`) bytes that are not UTF-8 text. Every message names the file
+  and the line number.
 - Vertices are sorted by id (``PoseGraph.ids``); edges keep the file's order.
 - Numbers are written with ``repr`` (the shortest decimal that reads back to the same float64),
   so write → read reproduces the graph to round-off (the quaternion ↔ matrix conversions are the
@@ -50,7 +54,6 @@ Other rules
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -59,6 +62,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam.io import _text
 from torchslam.lie import so3
 from torchslam.posegraph.graph import PoseGraph
 
@@ -78,28 +82,29 @@ _G2O_TO_OURS = [3, 4, 5, 0, 1, 2]
 _SE2_TO_OURS = [3, 4, 2]
 
 
-class _LineError(ValueError):
-    """A problem with one line; ``_parse`` adds the file name and line number."""
+# A problem with one line; ``parse_g2o`` adds the file name and line number.
+_LineError = _text.TokenError
+
+# Vertex ids are stored as int64.
+_MAX_ID = 2**63 - 1
+# An information matrix is positive semidefinite when its smallest eigenvalue is at least
+# −_PSD_TOLERANCE × its largest magnitude: a singular matrix written with 17 digits has
+# eigenvalues of order 1e-16 × that magnitude of either sign.
+_PSD_TOLERANCE = 1e-9
 
 
 def _int(token: str) -> int:
-    try:
-        return int(token)
-    except ValueError:
-        raise _LineError(f"expected an integer vertex id, got {token!r}") from None
+    return _text.parse_integer(token, 0, _MAX_ID, "an integer vertex id")
 
 
 def _floats(tokens: Iterable[str]) -> list[float]:
-    values = []
-    for token in tokens:
-        try:
-            value = float(token)
-        except ValueError:
-            raise _LineError(f"expected a number, got {token!r}") from None
-        if not math.isfinite(value):
-            raise _LineError(f"expected a finite number, got {token!r}")
-        values.append(value)
-    return values
+    return [_text.parse_finite_float(token) for token in tokens]
+
+
+def _with_unit_quaternion(values: list[float], start: int, what: str) -> list[float]:
+    """``values`` with the quaternion at ``start:start + 4`` normalized (module docstring)."""
+    q = _text.unit_quaternion(values[start : start + 4], what)
+    return [*values[:start], *q, *values[start + 4 :]]
 
 
 def _symmetric_from_upper(upper: np.ndarray, n: int) -> np.ndarray:
@@ -142,17 +147,25 @@ def _poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _poses_3d(values: np.ndarray) -> np.ndarray:
-    """(K, 7) rows (x, y, z, qx, qy, qz, qw) → (K, 4, 4); quaternions are normalized."""
-    q = values[:, 3:7]
-    return _poses(
-        _quaternion_xyzw_to_matrix(q / np.linalg.norm(q, axis=-1, keepdims=True)), values[:, :3]
-    )
+    """(K, 7) rows (x, y, z, qx, qy, qz, qw) with unit quaternions → (K, 4, 4)."""
+    return _poses(_quaternion_xyzw_to_matrix(values[:, 3:7]), values[:, :3])
 
 
 def _poses_2d(values: np.ndarray) -> np.ndarray:
     """(K, 3) rows (x, y, θ) → (K, 4, 4) in the plane z = 0."""
     t = np.concatenate((values[:, :2], np.zeros((values.shape[0], 1))), axis=-1)
     return _poses(_rotation_z(values[:, 2]), t)
+
+
+def _not_semidefinite(matrices: np.ndarray) -> int | None:
+    """Index of the first of (E, n, n) symmetric matrices that is not PSD, or None."""
+    if matrices.shape[0] == 0:
+        return None
+    # Scale each matrix by its largest entry first: eigvalsh of entries near 1e300 overflows.
+    scale = np.abs(matrices).max(axis=(-2, -1), keepdims=True)
+    eigenvalues = np.linalg.eigvalsh(matrices / np.where(scale > 0, scale, 1.0))
+    bad = eigenvalues[:, 0] < -_PSD_TOLERANCE * np.abs(eigenvalues).max(-1)
+    return int(np.argmax(bad)) if bad.any() else None
 
 
 def _information_3d(upper: np.ndarray) -> np.ndarray:
@@ -187,7 +200,7 @@ def parse_g2o(
 
     Raises:
         ValueError: for a malformed line, an unknown tag, an inconsistent graph; the message
-            names ``source`` and the line number.
+            names ``source`` and the line number (module docstring, "Other rules").
     """
     vertex_ids: list[int] = []
     vertex_values: list[list[float]] = []
@@ -202,7 +215,8 @@ def parse_g2o(
     def error(lineno: int, message: str) -> ValueError:
         return ValueError(f"parse_g2o: {source}, line {lineno}: {message}")
 
-    for lineno, raw in enumerate(text.splitlines(), start=1):
+    # Split at "\n" only: str.splitlines also splits at form feeds etc., shifting the numbers.
+    for lineno, raw in enumerate(text.split("\n"), start=1):
         tokens = raw.split("#", 1)[0].split()
         if not tokens:
             continue
@@ -230,24 +244,28 @@ def parse_g2o(
                     f"{dimension}D graph; mixed 2D/3D files are not supported"
                 )
             if tag.startswith("VERTEX"):
-                vertex_ids.append(_int(fields[0]))
+                vid = _int(fields[0])
                 values = _floats(fields[1:])
-                if tag == "VERTEX_SE3:QUAT" and not any(values[3:7]):
-                    raise _LineError("the quaternion (qx, qy, qz, qw) is zero")
+                if tag == "VERTEX_SE3:QUAT":
+                    values = _with_unit_quaternion(values, 3, "quaternion (qx, qy, qz, qw)")
+                vertex_ids.append(vid)
                 vertex_values.append(values)
                 vertex_lines.append(lineno)
             else:
-                edge_ids.append((_int(fields[0]), _int(fields[1])))
+                pair = (_int(fields[0]), _int(fields[1]))
                 values = _floats(fields[2:])
-                if tag == "EDGE_SE3:QUAT" and not any(values[3:7]):
-                    raise _LineError("the quaternion (dqx, dqy, dqz, dqw) is zero")
+                if tag == "EDGE_SE3:QUAT":
+                    values = _with_unit_quaternion(values, 3, "quaternion (dqx, dqy, dqz, dqw)")
+                edge_ids.append(pair)
                 edge_values.append(values)
                 edge_lines.append(lineno)
         except _LineError as exc:
             raise error(lineno, str(exc)) from None
 
     if not vertex_ids:
-        raise ValueError(f"parse_g2o: {source}: no vertices (VERTEX_SE3:QUAT or VERTEX_SE2)")
+        raise ValueError(
+            f"parse_g2o: {source}: no vertices (no VERTEX_SE3:QUAT or VERTEX_SE2 line)"
+        )
     index_of: dict[int, int] = {}
     first_line: dict[int, int] = {}
     for vid, lineno in zip(vertex_ids, vertex_lines, strict=True):
@@ -280,6 +298,12 @@ def parse_g2o(
     vertex_array = np.asarray(vertex_values, dtype=np.float64)[order]
     width = _FIELD_COUNTS["EDGE_SE3:QUAT" if dimension == 3 else "EDGE_SE2"] - 2
     edge_array = np.asarray(edge_values, dtype=np.float64).reshape(len(edge_values), width)
+    size = 6 if dimension == 3 else 3
+    bad = _not_semidefinite(
+        _symmetric_from_upper(edge_array[:, width - size * (size + 1) // 2 :], size)
+    )
+    if bad is not None:
+        raise error(edge_lines[bad], "the information matrix is not positive semidefinite")
     if dimension == 3:
         poses = _poses_3d(vertex_array)
         measurements = _poses_3d(edge_array[:, :7])
@@ -315,9 +339,12 @@ def read_g2o(path: str | os.PathLike[str], *, dtype: torch.dtype = torch.float64
         measurements Z_ij ≈ T_i⁻¹ T_j (E, 4, 4), information (E, 6, 6) in (ω, v) order.
 
     Raises:
-        ValueError: malformed line or unknown tag, naming the file and the line number.
+        ValueError: malformed line or unknown tag, or a file that is not UTF-8 text, naming the
+            file and the line number.
+        OSError: the file cannot be read.
     """
-    return parse_g2o(Path(path).read_text(), source=os.fspath(path), dtype=dtype)
+    lines = _text.decode_lines(Path(path).read_bytes(), path, "read_g2o", "text g2o file")
+    return parse_g2o("\n".join(lines), source=os.fspath(path), dtype=dtype)
 
 
 def _number(x: float) -> str:

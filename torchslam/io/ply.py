@@ -9,12 +9,19 @@ vertices are followed by a ``range_grid`` element with a list property::
     end_header
 
 In ascii files every element instance is one line, as written by every common PLY tool; this
-lets error messages name the line. Malformed headers and truncated or malformed data raise a
-``ValueError`` that names the file, and the header line or the element and instance.
+lets error messages name the line. Values are parsed exactly as their declared type: an integer
+property takes a decimal integer within the type's range (``uchar 300`` and ``int 2.7`` are
+errors, not 44 and 2), a float property a finite decimal number that fits the type (no ``nan``,
+``inf`` or ``1e39`` for ``float``). In binary files, float values must be finite too.
+Malformed headers (unknown keywords, missing ``format``, repeated element or property names,
+elements without properties), truncated data, data beyond the declared elements and bytes that
+are not ASCII text in an ascii body raise a ``ValueError`` that names the file and the header
+line, the data line (ascii) or the element and instance (binary).
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import struct
@@ -25,6 +32,8 @@ from typing import Literal
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchslam.io import _text
 
 __all__ = [
     "PlyData",
@@ -56,8 +65,25 @@ _TYPES: dict[str, str] = {
     "double": "f8",
     "float64": "f8",
 }
+# numpy kind of each integer type → its (min, max)
+_INTEGER_RANGES = {
+    kind: (int(np.iinfo(kind).min), int(np.iinfo(kind).max))
+    for kind in set(_TYPES.values())
+    if kind[0] != "f"
+}
+# numpy kind → the PLY name used in messages
+_TYPE_NAMES = {kind: name for name, kind in reversed(_TYPES.items())}
 _FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
-_END_HEADER = re.compile(rb"end_header[ \t]*\r?\n")
+# "end_header" on a line of its own (not at the end of a comment line)
+_END_HEADER = re.compile(rb"(?m)^end_header[ \t]*\r?\n")
+# Element and property names: printable ASCII without white space.
+_NAME = re.compile(r"[!-~]+")
+# Characters of the tokens the vectorized ascii path handles; anything else takes the slow
+# path, which names the offending line.
+_NOT_NUMERIC = re.compile(r"[^0-9eE+\-. \t\r\n]")
+_NOT_INTEGER = re.compile(r"[.eE]")
+# A line of white space only (str.split's white space, less the line break).
+_BLANK_LINE = re.compile(r"\n[ \t\r\f\v\x1c-\x1f\x85]*\n")
 
 
 @dataclass(frozen=True)
@@ -120,12 +146,37 @@ def _error(path: str | os.PathLike, what: str) -> ValueError:
     return ValueError(f"read_ply: {os.fspath(path)}: {what}")
 
 
+def _header_lines(path: str | os.PathLike, header: bytes) -> list[str]:
+    """The header's lines (split at ``\\n`` only, ``\\r`` dropped): ASCII, except that comment
+    and obj_info lines may hold any bytes (decoded as UTF-8, invalid bytes replaced)."""
+    raw_lines = header.split(b"\n")
+    if raw_lines and raw_lines[-1] == b"":
+        raw_lines.pop()
+    lines = []
+    for number, raw in enumerate(raw_lines, start=1):
+        raw = raw.removesuffix(b"\r")
+        words = raw.split(None, 1)
+        if words and words[0] in (b"comment", b"obj_info"):
+            lines.append(raw.decode("utf-8", errors="replace"))
+            continue
+        try:
+            lines.append(raw.decode("ascii"))
+        except UnicodeDecodeError as error:
+            raise _error(
+                path,
+                f"line {number}: not an ASCII PLY header line (byte 0x{raw[error.start]:02x} at "
+                f"column {error.start + 1})",
+            ) from None
+    return lines
+
+
 def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list, list, list]:
     """Parse header lines (without 'end_header'). Returns format, elements, comments, obj_info."""
     if not lines or lines[0].strip() != "ply":
         first = lines[0].strip() if lines else ""
         raise _error(path, f"line 1: expected 'ply' magic, got {first[:40]!r}")
     fmt: str | None = None
+    format_line = 0
     elements: list[tuple[str, int, list[PlyProperty]]] = []
     comments: list[str] = []
     obj_info: list[str] = []
@@ -147,12 +198,18 @@ def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list,
                 )
             if words[2] != "1.0":
                 raise _error(path, f"line {number}: unsupported PLY version {words[2]!r}")
-            fmt = words[1]
+            if fmt is not None:
+                raise _error(path, f"line {number}: second 'format' line (first: {format_line})")
+            fmt, format_line = words[1], number
         elif keyword == "element":
-            if len(words) != 3 or not words[2].isdigit():
+            if len(words) != 3 or not re.fullmatch("[0-9]+", words[2]):
                 raise _error(
-                    path, f"line {number}: expected 'element <name> <count>', got {line!r}"
+                    path, f"line {number}: expected 'element <name> <count>', got {line[:80]!r}"
                 )
+            _check_name(path, number, "element", words[1])
+            if any(words[1] == e[0] for e in elements):
+                raise _error(path, f"line {number}: element {words[1]!r} declared twice")
+            _check_element_has_properties(path, elements, number)
             elements.append((words[1], int(words[2]), []))
         elif keyword == "property":
             if not elements:
@@ -167,18 +224,43 @@ def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list,
                     )
                 if _TYPES[words[2]][0] == "f":
                     raise _error(path, f"line {number}: list count type must be an integer")
-                props.append(PlyProperty(words[4], _TYPES[words[3]], _TYPES[words[2]]))
+                prop = PlyProperty(words[4], _TYPES[words[3]], _TYPES[words[2]])
             else:
                 if len(words) != 3 or words[1] not in _TYPES:
                     raise _error(
-                        path, f"line {number}: expected 'property <type> <name>', got {line!r}"
+                        path,
+                        f"line {number}: expected 'property <type> <name>', got {line[:80]!r}",
                     )
-                props.append(PlyProperty(words[2], _TYPES[words[1]]))
+                prop = PlyProperty(words[2], _TYPES[words[1]])
+            _check_name(path, number, "property", prop.name)
+            if any(prop.name == q.name for q in props):
+                raise _error(
+                    path,
+                    f"line {number}: property {prop.name!r} declared twice in element "
+                    f"{elements[-1][0]!r}",
+                )
+            props.append(prop)
         else:
-            raise _error(path, f"line {number}: unknown header keyword {keyword!r}")
+            raise _error(path, f"line {number}: unknown header keyword {keyword[:40]!r}")
+    _check_element_has_properties(path, elements, len(lines) + 1)
     if fmt is None:
         raise _error(path, "header has no 'format' line")
     return fmt, elements, comments, obj_info
+
+
+def _check_name(path: str | os.PathLike, number: int, what: str, name: str) -> None:
+    if not _NAME.fullmatch(name):
+        raise _error(path, f"line {number}: {what} name {name!r} is not printable ASCII")
+
+
+def _check_element_has_properties(path: str | os.PathLike, elements: list, number: int) -> None:
+    """The last declared element (if any) must have properties unless it has no instances."""
+    if elements and elements[-1][1] > 0 and not elements[-1][2]:
+        name, count = elements[-1][0], elements[-1][1]
+        raise _error(
+            path,
+            f"line {number}: element {name!r} declares {count} instances but no properties",
+        )
 
 
 def _parse_ascii(
@@ -188,19 +270,36 @@ def _parse_ascii(
     elements: Sequence[PlyElement],
     wanted: set[str],
 ) -> dict[str, dict[str, np.ndarray | list[np.ndarray]]]:
-    lines = body.decode("ascii", errors="replace").splitlines()
-    wanted_positions = [i for i, e in enumerate(elements) if e.name in wanted]
-    if not wanted_positions:
-        return {}
-    needed = sum(e.count for e in elements[: wanted_positions[-1] + 1])
+    try:
+        text = body.decode("ascii")
+    except UnicodeDecodeError as error:
+        number = first_line + body.count(b"\n", 0, error.start)
+        raise _error(
+            path,
+            f"line {number}: not an ascii PLY data line (byte 0x{body[error.start]:02x} is "
+            "not ASCII; is the file binary?)",
+        ) from None
+    if text.endswith("\n"):
+        text = text[:-1]
+    lines = text.split("\n") if text else []
+    # Blank lines carry no data: drop them, keeping the file line numbers for messages.
     numbers: Sequence[int] = range(first_line, first_line + len(lines))
-    if any(not s.strip() for s in lines[:needed]):
-        # Blank lines carry no data: drop them, keeping the file line numbers for messages.
+    if lines and _BLANK_LINE.search(f"\n{text}\n"):
         numbers = [first_line + i for i, s in enumerate(lines) if s.strip()]
         lines = [s for s in lines if s.strip()]
+    total = sum(e.count for e in elements)
+    if len(lines) > total:
+        raise _error(
+            path,
+            f"line {numbers[total]}: data beyond the declared elements (the header declares "
+            f"{total} data lines, the file has {len(lines)})",
+        )
+    # Elements after the last requested one are not checked (a Stanford scan's range grid).
+    wanted_positions = [i for i, e in enumerate(elements) if e.name in wanted]
+    stop = wanted_positions[-1] + 1 if wanted_positions else 0
     out: dict[str, dict[str, np.ndarray | list[np.ndarray]]] = {}
     cursor = 0
-    for element in elements[: wanted_positions[-1] + 1]:
+    for element in elements[:stop]:
         block = lines[cursor : cursor + element.count]
         if len(block) < element.count:
             raise _error(
@@ -210,45 +309,59 @@ def _parse_ascii(
             )
         block_numbers = numbers[cursor : cursor + element.count]
         cursor += element.count
-        if element.name not in wanted:
-            continue
-        out[element.name] = _parse_ascii_element(path, element, block, block_numbers)
+        if element.name in wanted:
+            out[element.name] = _parse_ascii_element(path, element, block, block_numbers)
     return out
+
+
+def _ascii_value(token: str, kind: str) -> int | float:
+    """One ascii token parsed exactly as the PLY type ``kind`` (raises TokenError)."""
+    if kind[0] == "f":
+        value = _text.parse_finite_float(token)
+        if kind == "f4" and not _fits_float32(np.asarray([value])).all():
+            raise _text.TokenError(f"{token!r} overflows the type float")
+        return value
+    low, high = _INTEGER_RANGES[kind]
+    return _text.parse_integer(token, low, high, f"an integer of type {_TYPE_NAMES[kind]}")
+
+
+def _typed_column(tokens: list[str], kind: str) -> np.ndarray | None:
+    """Tokens that passed the _NOT_NUMERIC test as an array of ``kind``; None if any value
+    does not parse exactly as that type (the caller's slow path then names it)."""
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        return None
+    if kind[0] == "f":
+        ok = _fits_float32(values) if kind == "f4" else np.isfinite(values)
+        if not ok.all():
+            return None
+    else:
+        low, high = _INTEGER_RANGES[kind]
+        if values.size and (values.min() < low or values.max() > high):
+            return None
+        if _NOT_INTEGER.search(" ".join(tokens)):
+            return None
+    return values.astype(kind)
+
+
+def _fits_float32(values: np.ndarray) -> np.ndarray:
+    """Finite float64 values that stay finite when rounded to float32."""
+    with np.errstate(over="ignore"):
+        return np.isfinite(values.astype(np.float32))
 
 
 def _parse_ascii_element(
     path: str | os.PathLike, element: PlyElement, block: list[str], numbers: Sequence[int]
 ) -> dict[str, np.ndarray | list[np.ndarray]]:
     props = element.properties
-    if not any(p.is_list for p in props):
-        width = len(props)
-        # Per-line token counts too: equal totals could hide a short and a long line.
-        aligned = all(len(line.split()) == width for line in block)
-        try:
-            flat = np.array(" ".join(block).split(), dtype=np.float64) if aligned else None
-        except ValueError:
-            flat = None
-        if flat is None:
-            # Slow path only to find and name the offending line.
-            for line, number in zip(block, numbers, strict=True):
-                tokens = line.split()
-                if len(tokens) != width:
-                    raise _error(
-                        path,
-                        f"line {number} (element '{element.name}'): expected {width} "
-                        f"values, got {len(tokens)}",
-                    )
-                for token in tokens:
-                    try:
-                        float(token)
-                    except ValueError:
-                        raise _error(
-                            path,
-                            f"line {number} (element '{element.name}'): not a number: {token!r}",
-                        ) from None
-            flat = np.array([float(t) for t in " ".join(block).split()], dtype=np.float64)
-        table = flat.reshape(element.count, width)
-        return {p.name: table[:, i].astype(p.dtype) for i, p in enumerate(props)}
+    if any(p.is_list for p in props):
+        fast = _parse_ascii_rows(element, block)
+    else:
+        fast = _parse_ascii_table(element, block)
+    if fast is not None:
+        return fast
+    # One line at a time: exact checks, and the message names the offending line.
     columns: dict[str, list] = {p.name: [] for p in props}
     for line, number in zip(block, numbers, strict=True):
         tokens = line.split()
@@ -256,23 +369,29 @@ def _parse_ascii_element(
         try:
             for p in props:
                 if p.is_list:
-                    n = int(tokens[pos])
+                    if pos >= len(tokens):
+                        raise _text.TokenError(f"list '{p.name}': missing its length")
+                    count_max = _INTEGER_RANGES[p.count_dtype][1]
+                    n = _text.parse_integer(
+                        tokens[pos], 0, count_max, f"a list length (≥ 0) for '{p.name}'"
+                    )
                     values = tokens[pos + 1 : pos + 1 + n]
                     if len(values) != n:
-                        raise IndexError
-                    columns[p.name].append(np.array(values, dtype=np.float64).astype(p.dtype))
+                        raise _text.TokenError(
+                            f"list '{p.name}': expected {n} values, got {len(values)}"
+                        )
+                    parsed = [_ascii_value(v, p.dtype) for v in values]
+                    columns[p.name].append(np.array(parsed, dtype=np.float64).astype(p.dtype))
                     pos += 1 + n
                 else:
-                    columns[p.name].append(float(tokens[pos]))
+                    if pos >= len(tokens):
+                        raise _text.TokenError(
+                            f"expected {_width_text(props)}, got {len(tokens)} values"
+                        )
+                    columns[p.name].append(_ascii_value(tokens[pos], p.dtype))
                     pos += 1
-        except IndexError:
-            raise _error(
-                path, f"line {number} (element '{element.name}'): too few values"
-            ) from None
-        except ValueError:
-            raise _error(
-                path, f"line {number} (element '{element.name}'): not a number in {line!r}"
-            ) from None
+        except _text.TokenError as error:
+            raise _error(path, f"line {number} (element '{element.name}'): {error}") from None
         if pos != len(tokens):
             raise _error(
                 path,
@@ -280,9 +399,88 @@ def _parse_ascii_element(
                 "unexpected extra value(s)",
             )
     return {
-        p.name: columns[p.name] if p.is_list else np.array(columns[p.name]).astype(p.dtype)
+        p.name: columns[p.name]
+        if p.is_list
+        else np.array(columns[p.name], dtype=np.float64 if p.dtype[0] == "f" else np.int64).astype(
+            p.dtype
+        )
         for p in props
     }
+
+
+def _width_text(props: Sequence[PlyProperty]) -> str:
+    if any(p.is_list for p in props):
+        return "more values"
+    return f"{len(props)} values"
+
+
+def _parse_ascii_table(
+    element: PlyElement, block: list[str]
+) -> dict[str, np.ndarray | list[np.ndarray]] | None:
+    """Vectorized parse of an element of scalar properties; None when anything is off (the
+    caller then parses line by line, which finds and names the problem)."""
+    props = element.properties
+    width = len(props)
+    text = " ".join(block)
+    if _NOT_NUMERIC.search(text):
+        return None  # letters (nan, inf, garbage) or other characters
+    tokens = text.split()
+    # Per-line token counts too: equal totals could hide a short and a long line.
+    if len(tokens) != width * len(block) or any(len(line.split()) != width for line in block):
+        return None
+    out: dict[str, np.ndarray | list[np.ndarray]] = {}
+    for i, p in enumerate(props):
+        column = _typed_column(tokens[i::width], p.dtype)
+        if column is None:
+            return None
+        out[p.name] = column
+    return out
+
+
+def _parse_ascii_rows(
+    element: PlyElement, block: list[str]
+) -> dict[str, np.ndarray | list[np.ndarray]] | None:
+    """Faster parse of an element with list properties (one Python loop over the lines, the
+    type checks vectorized); None when anything is off, as for :func:`_parse_ascii_table`."""
+    props = element.properties
+    if _NOT_NUMERIC.search(" ".join(block)):
+        return None
+    tokens_of: dict[str, list] = {p.name: [] for p in props}
+    lengths: dict[str, list[int]] = {p.name: [] for p in props if p.is_list}
+    try:
+        for line in block:
+            tokens = line.split()
+            pos = 0
+            for p in props:
+                if p.is_list:
+                    n = int(tokens[pos])
+                    end = pos + 1 + n
+                    if n < 0 or end > len(tokens):
+                        return None
+                    tokens_of[p.name].extend(tokens[pos + 1 : end])
+                    lengths[p.name].append(n)
+                    pos = end
+                else:
+                    tokens_of[p.name].append(tokens[pos])
+                    pos += 1
+            if pos != len(tokens):
+                return None
+    except (IndexError, ValueError):
+        return None
+    out: dict[str, np.ndarray | list[np.ndarray]] = {}
+    for p in props:
+        values = _typed_column(tokens_of[p.name], p.dtype)
+        if values is None:
+            return None
+        if p.is_list:
+            sizes = lengths[p.name]
+            if sizes and max(sizes) > _INTEGER_RANGES[p.count_dtype][1]:
+                return None
+            ends = list(itertools.accumulate(sizes))
+            out[p.name] = [values[e - n : e] for n, e in zip(sizes, ends, strict=True)]
+        else:
+            out[p.name] = values
+    return out
 
 
 _STRUCT_CODES = {
@@ -316,7 +514,7 @@ def _parse_binary_rows(
     size = len(body)
     instance = 0
     try:
-        for instance in range(element.count):  # noqa: B007 (read in the except clause)
+        for instance in range(element.count):
             for p, count, value in unpackers:
                 if count is None:
                     item = value.unpack_from(body, offset)[0]
@@ -324,10 +522,22 @@ def _parse_binary_rows(
                 else:
                     n = count.unpack_from(body, offset)[0]
                     offset += count.size
+                    if n < 0:
+                        raise _error(
+                            path,
+                            f"element '{element.name}', instance {instance}: list "
+                            f"'{p.name}' has a negative length {n}",
+                        )
                     end = offset + n * value.size
-                    if n < 0 or end > size:
+                    if end > size:
                         raise struct.error("truncated")
                     item = np.frombuffer(body, order + p.dtype, n, offset).astype(p.dtype)
+                    if p.dtype[0] == "f" and not np.isfinite(item).all():
+                        raise _error(
+                            path,
+                            f"element '{element.name}', instance {instance}: list "
+                            f"'{p.name}' holds a non-finite value",
+                        )
                     offset = end
                 if keep:
                     columns[p.name].append(item)
@@ -341,7 +551,27 @@ def _parse_binary_rows(
         p.name: columns[p.name] if p.is_list else np.array(columns[p.name], dtype=p.dtype)
         for p in props
     }
+    if keep:
+        _check_finite(path, element, result)
     return offset, result
+
+
+def _check_finite(
+    path: str | os.PathLike, element: PlyElement, columns: dict[str, np.ndarray | list]
+) -> None:
+    """Binary float values must be finite: name the first instance holding a NaN or ±Inf."""
+    for p in element.properties:
+        values = columns[p.name]
+        if p.is_list or p.dtype[0] != "f":
+            continue
+        finite = np.isfinite(values)
+        if not finite.all():
+            instance = int(np.argmin(finite))
+            raise _error(
+                path,
+                f"element '{element.name}', instance {instance} of {element.count}: property "
+                f"'{p.name}' is {values[instance]} (binary float values must be finite)",
+            )
 
 
 def _parse_binary(
@@ -370,12 +600,19 @@ def _parse_binary(
             if element.name in wanted:
                 table = np.frombuffer(body, dtype=record, count=element.count, offset=offset)
                 out[element.name] = {p.name: table[p.name].astype(p.dtype) for p in props}
+                _check_finite(path, element, out[element.name])
             offset += size
-            continue
-        keep = element.name in wanted
-        offset, columns = _parse_binary_rows(path, body, offset, order, element, keep)
-        if keep:
-            out[element.name] = columns
+        else:
+            keep = element.name in wanted
+            offset, columns = _parse_binary_rows(path, body, offset, order, element, keep)
+            if keep:
+                out[element.name] = columns
+        if index == len(elements) - 1 and offset != len(body):
+            raise _error(
+                path,
+                f"{len(body) - offset} byte(s) of data beyond the declared elements (the last, "
+                f"'{element.name}', ends at byte {offset} of the body)",
+            )
     return out
 
 
@@ -393,8 +630,10 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
         :class:`PlyData`; ``data["vertex"]["x"]`` etc. keep the file's scalar types.
 
     Raises:
-        ValueError: malformed header (names the header line), or truncated / malformed data
-            (names the element and, for ascii, the file line).
+        ValueError: malformed header (names the header line), or truncated / malformed data,
+            a value outside its declared type, a non-finite float, data beyond the declared
+            elements (names the element and, for ascii, the file line; module docstring).
+        OSError: the file cannot be read.
     """
     with open(path, "rb") as f:
         raw = f.read()
@@ -403,7 +642,8 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
         if not raw.startswith(b"ply"):
             raise _error(path, "line 1: not a PLY file (no 'ply' magic)")
         raise _error(path, "header is not terminated by an 'end_header' line")
-    header_lines = raw[: match.start()].decode("ascii", errors="replace").splitlines()
+    # Split at "\n" only (splitlines would also split at form feeds, shifting line numbers).
+    header_lines = _header_lines(path, raw[: match.start()])
     fmt, declared, comments, obj_info = _parse_header(path, header_lines)
     element_list = tuple(PlyElement(n, c, tuple(p)) for n, c, p in declared)
     names = [e.name for e in element_list]
@@ -435,8 +675,21 @@ def read_ply_points(path: str | os.PathLike, *, dtype: torch.dtype = torch.float
 
     Returns:
         Points x, y, z, shape (N, 3), in the file's units (metres for the Stanford scans).
+
+    Raises:
+        ValueError: as :func:`read_ply`, or no ``vertex`` element with x, y, z (naming the
+            file); a coordinate that overflows ``dtype`` (e.g. 1e300 for float32).
     """
-    return torch.from_numpy(read_ply(path, elements=("vertex",)).points()).to(dtype)
+    data = read_ply(path, elements=("vertex",))
+    vertex = data.data["vertex"]
+    missing = [k for k in ("x", "y", "z") if k not in vertex]
+    if missing:
+        raise _error(path, f"element 'vertex' has no property {', '.join(map(repr, missing))}")
+    points = torch.from_numpy(data.points()).to(dtype)
+    # The values are finite float64 (read_ply checks); a narrower dtype may overflow.
+    if dtype.is_floating_point and dtype.itemsize < 8 and not bool(torch.isfinite(points).all()):
+        raise _error(path, f"vertex coordinates overflow {dtype}")
+    return points
 
 
 def write_ply(
@@ -458,10 +711,18 @@ def write_ply(
         format: ``"binary_little_endian"`` (default), ``"binary_big_endian"`` or ``"ascii"``.
         coordinate_type: ``"double"`` (default, lossless for float64) or ``"float"``.
         comments: header comment lines (no newlines).
+
+    Raises:
+        ValueError: wrong shapes, non-finite points (or points that overflow ``float``), colours
+            outside 0..255, comments with newlines, an unknown format.
     """
     pts = points.detach().cpu().numpy() if isinstance(points, Tensor) else np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"write_ply: argument 'points' must have shape (N, 3), got {pts.shape}")
+    if not np.issubdtype(pts.dtype, np.number) or np.issubdtype(pts.dtype, np.complexfloating):
+        raise TypeError(f"write_ply: argument 'points' must be real numbers, got {pts.dtype}")
+    if not np.isfinite(pts).all():
+        raise ValueError("write_ply: argument 'points' must be finite (NaN or Inf found)")
     if format not in _FORMATS:
         raise ValueError(f"write_ply: argument 'format' must be one of {_FORMATS}, got {format!r}")
     if coordinate_type not in ("float", "double"):
@@ -492,6 +753,8 @@ def write_ply(
         header += [f"property uchar {k}" for k in ("red", "green", "blue")]
     header += ["end_header"]
     coord = "f8" if coordinate_type == "double" else "f4"
+    if coord == "f4" and not _fits_float32(pts.astype(np.float64)).all():
+        raise ValueError("write_ply: argument 'points' overflows coordinate_type 'float'")
     with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         if format == "ascii":

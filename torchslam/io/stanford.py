@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam.io import _text
 from torchslam.lie import convert, se3, so3
 
 __all__ = [
@@ -51,44 +52,44 @@ def read_conf(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) ->
         common frame: p_common = T[:3, :3] p_scan + T[:3, 3] with T[:3, :3] = R(q)ᵀ.
 
     Raises:
-        ValueError: a malformed line (the message names the file and line).
+        ValueError: a malformed line: wrong keyword or field count, a number that is not a
+            finite decimal (``nan``, ``inf``), a zero quaternion, a repeated scan, bytes that
+            are not UTF-8 text (the message names the file and line); or no ``bmesh`` line.
+        OSError: the file cannot be read.
     """
+    fn, where = "read_conf", os.fspath(path)
+    with open(path, "rb") as f:
+        lines = _text.decode_lines(f.read(), path, fn, "text .conf file")
     poses: dict[str, Tensor] = {}
-    with open(path, encoding="ascii", errors="replace") as f:
-        for number, raw in enumerate(f, start=1):
-            words = raw.split()
-            if not words or words[0] == "camera" or words[0].startswith("#"):
-                continue
-            if words[0] != "bmesh":
-                raise ValueError(
-                    f"read_conf: {os.fspath(path)}: line {number}: expected 'camera' or "
-                    f"'bmesh', got {words[0]!r}"
-                )
-            if len(words) != 9:
-                raise ValueError(
-                    f"read_conf: {os.fspath(path)}: line {number}: expected 'bmesh <file> "
-                    f"tx ty tz qx qy qz qw', got {len(words)} fields"
-                )
-            try:
-                values = [float(v) for v in words[2:]]
-            except ValueError:
-                raise ValueError(
-                    f"read_conf: {os.fspath(path)}: line {number}: not a number in {raw.strip()!r}"
-                ) from None
-            t = torch.tensor(values[:3], dtype=dtype)
-            qx, qy, qz, qw = values[3:]
-            q_wxyz = torch.tensor([qw, qx, qy, qz], dtype=dtype)  # file order is scalar-last
-            norm = torch.linalg.vector_norm(q_wxyz)
-            if not norm > 0:
-                raise ValueError(f"read_conf: {os.fspath(path)}: line {number}: zero quaternion")
-            # The file's 6 significant digits leave |q| − 1 ~ 1e-6: normalize first.
-            R = convert.quaternion_to_matrix(q_wxyz / norm).transpose(-1, -2)  # R(q)ᵀ
-            name = scan_name(words[1])
-            if name in poses:
-                raise ValueError(
-                    f"read_conf: {os.fspath(path)}: line {number}: scan {name!r} listed twice"
-                )
-            poses[name] = se3.from_rotation_translation(R, t)
+    for number, raw in enumerate(lines, start=1):
+        words = raw.split()
+        if not words or words[0] == "camera" or words[0].startswith("#"):
+            continue
+        if words[0] != "bmesh":
+            raise ValueError(
+                f"{fn}: {where}: line {number}: expected 'camera' or 'bmesh', got {words[0][:40]!r}"
+            )
+        if len(words) != 9:
+            raise ValueError(
+                f"{fn}: {where}: line {number}: expected 'bmesh <file> tx ty tz qx qy qz qw', "
+                f"got {len(words)} fields"
+            )
+        try:
+            values = [_text.parse_finite_float(v) for v in words[2:]]
+            # The file's 6 significant digits leave |q| − 1 ~ 1e-6: normalize (robustly).
+            qx, qy, qz, qw = _text.unit_quaternion(values[3:], "quaternion")
+        except _text.TokenError as error:
+            kind = "zero quaternion" if "is zero" in str(error) else "not a number"
+            raise ValueError(f"{fn}: {where}: line {number}: {kind}: {error}") from None
+        t = torch.tensor(values[:3], dtype=dtype)
+        q_wxyz = torch.tensor([qw, qx, qy, qz], dtype=dtype)  # file order is scalar-last
+        R = convert.quaternion_to_matrix(q_wxyz).transpose(-1, -2)  # R(q)ᵀ
+        name = scan_name(words[1])
+        if name in poses:
+            raise ValueError(f"{fn}: {where}: line {number}: scan {name!r} listed twice")
+        poses[name] = se3.from_rotation_translation(R, t)
+    if not poses:
+        raise ValueError(f"{fn}: {where}: no 'bmesh' lines (not a Stanford .conf file?)")
     return poses
 
 

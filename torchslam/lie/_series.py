@@ -118,3 +118,20 @@ def atan_ratio(y: Tensor, x: Tensor) -> Tensor:
     y_safe = torch.where(small, torch.ones_like(y), y)
     closed = torch.atan2(y_safe, x) / y_safe
     return torch.where(small, _horner(r2, _ATAN) / x_safe, closed)
+
+
+def atan_ratio_squared(y2: Tensor, x: Tensor) -> Tensor:
+    """atan2(y, x) / y for y = √y2 ≥ 0, as a function of y2 (exact at y2 = 0, value 1/x).
+
+    The same function as :func:`atan_ratio`, but reading y² instead of y, so that callers
+    never take the norm y = |v| of a vector: its derivative v/|v| is 0/0 at v = 0, which the
+    first backward masks but a double backward turns into NaN. Here both branches see safe
+    inputs (the square root is taken of y2 only where y2 is large), so first and second
+    derivatives are finite, and exact, at y2 = 0.
+    """
+    small = y2 < 1e-2 * (x * x)
+    x_safe = torch.where(small, x, torch.ones_like(x))
+    r2 = torch.where(small, y2 / (x_safe * x_safe), torch.zeros_like(y2))
+    y_safe = torch.sqrt(torch.where(small, torch.ones_like(y2), y2))
+    closed = torch.atan2(y_safe, x) / y_safe
+    return torch.where(small, _horner(r2, _ATAN) / x_safe, closed)

@@ -303,9 +303,10 @@ def _matrix_to_quaternion(R: Tensor) -> Tensor:
 def _log(R: Tensor) -> Tensor:
     q = _matrix_to_quaternion(R)
     w, v = q[..., 0], q[..., 1:]
-    n = torch.linalg.vector_norm(v, dim=-1)
-    # ω = θ v / |v| with θ = 2 atan2(|v|, w); the ratio is exact at |v| = 0.
-    return (2.0 * _series.atan_ratio(n, w))[..., None] * v
+    # ω = θ v / |v| with θ = 2 atan2(|v|, w); the ratio is exact at |v| = 0. It is read off
+    # |v|², never |v| (whose derivative is 0/0 at v = 0), so that second derivatives (a
+    # double backward, e.g. a Hessian-vector product through the solver) are finite at R = I.
+    return (2.0 * _series.atan_ratio_squared((v * v).sum(-1), w))[..., None] * v
 
 
 def log(R: Tensor) -> Tensor:

@@ -10,6 +10,7 @@ before and after (x-y and x-z projections of the vertex positions, and the cost 
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Literal
 
 import torch
 
+from torchslam import _plotting
 from torchslam.io import g2o
 from torchslam.posegraph import initialization, objectives
 from torchslam.posegraph.graph import PoseGraph
@@ -27,7 +29,14 @@ from torchslam.posegraph.solve import (
     solve_pose_graph,
 )
 
-__all__ = ["INITIALIZATIONS", "PoseGraphOptions", "initial_poses", "run_posegraph"]
+__all__ = [
+    "INITIALIZATIONS",
+    "PoseGraphOptions",
+    "add_arguments",
+    "initial_poses",
+    "options_from_args",
+    "run_posegraph",
+]
 
 # Initial poses: the file's vertex values (for the benchmark files, the odometry chain as
 # recorded), the odometry chain recomposed from the edges, or the chordal relaxation.
@@ -56,6 +65,51 @@ class PoseGraphOptions:
     threads: int = 1
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``torchslam posegraph``."""
+    from torchslam.cli import int_range
+
+    parser.add_argument("file", type=Path, help="the g2o file")
+    parser.add_argument("--out", type=Path, help="write the optimized graph (g2o) here")
+    parser.add_argument(
+        "--plot",
+        type=Path,
+        help="write a figure (x-y, x-z, cost) here, e.g. trajectory.png (needs matplotlib: "
+        f"{_plotting.INSTALL_HINT})",
+    )
+    parser.add_argument(
+        "--init",
+        choices=list(INITIALIZATIONS),
+        default="file",
+        help="initial poses: the file's vertices (default), the odometry chain, or chordal",
+    )
+    parser.add_argument(
+        "--max-iterations",
+        type=int_range(1, 100_000),
+        default=100,
+        help="LM iterations [1, 100000] (100)",
+    )
+    parser.add_argument(
+        "--linear-solver", choices=["auto", "sparse", "dense"], default="auto", help="(auto)"
+    )
+    parser.add_argument(
+        "--threads", type=int_range(1, 1024), default=1, help="torch CPU threads [1, 1024] (1)"
+    )
+
+
+def options_from_args(args: argparse.Namespace) -> PoseGraphOptions:
+    """The :class:`PoseGraphOptions` of parsed ``torchslam posegraph`` arguments."""
+    return PoseGraphOptions(
+        path=args.file,
+        out=args.out,
+        plot=args.plot,
+        init=args.init,
+        max_iterations=args.max_iterations,
+        linear_solver=args.linear_solver,
+        threads=args.threads,
+    )
+
+
 def initial_poses(graph: PoseGraph, init: str) -> torch.Tensor:
     """Initial poses (N, 4, 4) by name: "file", "odometry" or "chordal" (INITIALIZATIONS)."""
     if init == "file":
@@ -73,13 +127,16 @@ def run_posegraph(
     """Run the command, printing through ``echo``; returns the solve result.
 
     Raises:
-        ValueError: malformed file (the message names the line), bad option, broken chain.
+        ValueError: malformed file (the message names the line), bad option, broken chain,
+            a figure asked for (``plot``) while matplotlib is missing (raised before solving).
         OSError: a file that cannot be read or written.
     """
     if options.max_iterations < 1:
         raise ValueError(f"--max-iterations must be ≥ 1, got {options.max_iterations}")
     if options.threads < 1:
         raise ValueError(f"--threads must be ≥ 1, got {options.threads}")
+    if options.out is not None and options.out.is_dir():
+        raise ValueError(f"--out {options.out} is a directory; give a file name (e.g. out.g2o)")
     if options.plot is not None:
         _check_figure_format(options.plot)  # before the solve, not after it
     previous_threads = torch.get_num_threads()
@@ -91,10 +148,7 @@ def run_posegraph(
 
 
 def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSolveResult:
-    try:
-        graph = g2o.read_g2o(options.path)
-    except UnicodeDecodeError as error:
-        raise ValueError(f"{options.path}: not a g2o text file ({error})") from None
+    graph = g2o.read_g2o(options.path)
     poses = initial_poses(graph, options.init)
     num_odometry = int(graph.odometry_mask().sum())
     echo(
@@ -128,6 +182,7 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
         f"linear solves {result.linear_solve_seconds:.3f} s)"
     )
     if options.out is not None:
+        options.out.parent.mkdir(parents=True, exist_ok=True)
         g2o.write_g2o(options.out, graph, result.poses)
         echo(f"wrote {options.out}")
     if options.plot is not None:
@@ -138,9 +193,11 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
 
 
 def _check_figure_format(path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
+    """matplotlib is there and can write ``path``'s format; ValueError otherwise."""
+    try:
+        _plotting.require_matplotlib()
+    except _plotting.MatplotlibMissingError as error:
+        raise ValueError(f"--plot needs matplotlib: {error}") from None
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     formats = FigureCanvasAgg.get_supported_filetypes()
@@ -161,11 +218,11 @@ def plot_trajectories(
         initial: initial poses, shape (N, 4, 4) (body → world; positions are the translations).
         result: the solve result.
         title: a title for the figure (e.g. the file name).
-    """
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Raises:
+        torchslam._plotting.MatplotlibMissingError: matplotlib is not installed.
+    """
+    plt = _plotting.require_pyplot()
 
     before = initial[:, :3, 3].detach().cpu().double().numpy()
     after = result.poses[:, :3, 3].detach().cpu().double().numpy()

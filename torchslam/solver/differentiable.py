@@ -41,8 +41,40 @@ loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Fou
   terms, an O(residual) error. Fixed variables keep their given values: the initial guess
   receives the identity there, plus the effect of moving a fixed variable (e.g. the gauge
   pose) on the free solution; elsewhere the solution does not depend on the initial guess.
-  The theorem needs a converged, non-degenerate minimum (check ``result.converged``).
+  The theorem needs a converged, non-degenerate minimum: see *Unconverged problems* below.
+  First derivatives only: a backward with ``create_graph=True`` (``torch.autograd.grad(...,
+  create_graph=True)``, ``.backward(create_graph=True)``, Hessian-vector products) raises a
+  ``RuntimeError``; use ``"unrolled"`` for second derivatives.
 - ``"none"``: :func:`torchslam.solve_tensors` (``torch.no_grad``), detached results.
+
+Unconverged problems (``on_unconverged``, implicit mode). A problem whose status is not
+converged (:attr:`SolveResult.converged`: stopped at ``max_iterations``, at the damping limit,
+by a failed linear solve or a non-finite cost) did not reach a minimum, so the implicit
+gradient is not the derivative of what was computed (1% off after a few iterations short of
+convergence, wrong by any factor after one). The policy decides, per problem:
+
+- ``"warn"`` (default): the unconverged problems are re-run from the initial guess with
+  autograd on (as ``"unrolled"``, the same iterations: ``max_iterations`` capped at the most
+  any unconverged problem used, ``reduced_solver="dense"``), and their ``pose_tangent``,
+  ``points`` and ``final_cost`` are those of the re-run, whose gradient is the exact
+  derivative of the iterations actually run; converged problems keep the implicit gradient. A
+  ``UserWarning`` names the unconverged problems and their status.
+- ``"unroll"``: the same, without the warning (e.g. a deliberately short forward solve).
+- ``"raise"``: a ``RuntimeError`` naming the unconverged problems.
+- ``"implicit"``: the implicit gradient for every problem anyway (the opt-out: approximate
+  where a problem stopped short of its minimum, NaN where its iterate is not finite).
+
+The policy applies only when a gradient is attached (grad mode on and something requires
+grad). ``"unrolled"`` already differentiates what was computed; ``"truncated"`` is an
+approximation chosen explicitly.
+
+Reusing data across training steps. The observations, weights etc. of ``data`` are the graph's
+inputs: a tensor built once (``weights=torch.sigmoid(logits)`` in a problem built before the
+training loop) has its graph freed by the first ``backward()``, and a second solve on it could
+not reach ``logits`` again. :func:`solve_differentiable` detects such a tensor (when
+validation is on) and raises a ``ValueError``; build the tensor inside the loop instead, e.g.
+``dataclasses.replace(problem.data, weights=torch.sigmoid(logits))`` (cheap: no copies, no
+checks) or a new :class:`torchslam.PointMapProblem`.
 
 With a :class:`torchslam.PointMapProblem` (weights produced by a model ``net``)::
 
@@ -54,8 +86,10 @@ With a :class:`torchslam.PointMapProblem` (weights produced by a model ``net``):
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -83,10 +117,12 @@ from torchslam.solver.solve import (
     sparse_schur,
 )
 
-__all__ = ["Backward", "ImplicitConfig", "solve_differentiable"]
+__all__ = ["Backward", "ImplicitConfig", "OnUnconverged", "solve_differentiable"]
 
 Backward = Literal["implicit", "unrolled", "truncated", "none"]
 _BACKWARDS = ("implicit", "unrolled", "truncated", "none")
+OnUnconverged = Literal["warn", "unroll", "raise", "implicit"]
+_ON_UNCONVERGED = ("warn", "unroll", "raise", "implicit")
 _HESSIANS = ("exact", "gauss_newton")
 
 
@@ -127,6 +163,7 @@ def solve_differentiable(
     backward: Backward = "implicit",
     truncate_steps: int = 1,
     implicit: ImplicitConfig | None = None,
+    on_unconverged: OnUnconverged = "warn",
 ) -> SolveResult:
     """Solve B problems like :func:`torchslam.solve_tensors`, differentiably (module doc).
 
@@ -141,10 +178,20 @@ def solve_differentiable(
         truncate_steps: k ≥ 1, accepted iterations of each problem that "truncated"
             differentiates.
         implicit: options of the "implicit" backward; default :class:`ImplicitConfig()`.
+        on_unconverged: what the "implicit" backward does for problems that did not converge
+            (module doc): "warn" (default: unrolled gradient of the iterations actually run
+            for those problems, with a ``UserWarning``), "unroll" (the same, silently),
+            "raise" (``RuntimeError``) or "implicit" (the implicit gradient anyway).
 
     Returns:
         A :class:`SolveResult`; ``pose_tangent`` (B, m, 6), ``points`` (B, n, 3) and
         ``final_cost`` (B,) are differentiable (detached for "none"), the histories are not.
+
+    Raises:
+        ValueError: a tensor of ``data`` (or the initial guess) whose autograd graph was
+            already freed by a backward (module doc, *Reusing data across training steps*).
+        RuntimeError: ``on_unconverged="raise"`` and a problem did not converge; a second
+            derivative (``create_graph=True``) through the "implicit" backward.
     """
     fn = "solve_differentiable"
     _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2)
@@ -169,6 +216,10 @@ def solve_differentiable(
         raise TypeError(f"{fn}: 'truncate_steps' must be an int, got {truncate_steps!r}")
     if truncate_steps < 1:
         raise ValueError(f"{fn}: 'truncate_steps' must be ≥ 1, got {truncate_steps}")
+    if on_unconverged not in _ON_UNCONVERGED:
+        raise ValueError(
+            f"{fn}: 'on_unconverged' must be one of {_ON_UNCONVERGED}, got {on_unconverged!r}"
+        )
     config = config or SolverConfig()
     if backward in ("unrolled", "truncated"):
         if config.reduced_solver == "sparse":
@@ -183,8 +234,10 @@ def solve_differentiable(
 
     if backward == "none":
         return solve_tensors(pose_tangent, points, data, config)
+    if _checks.value_checks_active():
+        _check_graphs_alive(fn, pose_tangent, points, data)
     if backward == "implicit":
-        return _solve_implicit(pose_tangent, points, data, config, implicit)
+        return _solve_implicit(pose_tangent, points, data, config, implicit, on_unconverged)
     start = time.perf_counter()
     with _checks.validation(False):
         if backward == "unrolled":
@@ -309,8 +362,19 @@ class _ImplicitSolution(torch.autograd.Function):
         return xi_star.clone(), X_star.clone()
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_xi, grad_X):
+        # The engine runs a backward in grad mode exactly when it records a graph of the
+        # gradient (create_graph=True). That graph would have to differentiate the solution
+        # map twice (third derivatives of the cost); rather than return a gradient that
+        # silently treats w = H⁻¹v as a constant, refuse.
+        if torch.is_grad_enabled():
+            raise RuntimeError(
+                "solve_differentiable: backward='implicit' provides first derivatives only; "
+                "a second derivative (torch.autograd.grad(..., create_graph=True), "
+                ".backward(create_graph=True), Hessian-vector products) through it is not "
+                "implemented. Use solve_differentiable(..., backward='unrolled') to "
+                "differentiate twice."
+            )
         spec: _ImplicitSpec = ctx.spec
         xi_star, X_star, xi0, X0, *theta = ctx.saved_tensors
         need = ctx.needs_input_grad
@@ -459,6 +523,7 @@ def _solve_implicit(
     data: PointMapData,
     config: SolverConfig,
     implicit: ImplicitConfig,
+    on_unconverged: str,
 ) -> SolveResult:
     result = solve_tensors(pose_tangent, points, data, config)
     data_spec = _DataSpec.of(data)
@@ -467,10 +532,129 @@ def _solve_implicit(
         t.requires_grad for t in (pose_tangent, points, *theta)
     ):
         return result
-    spec = _ImplicitSpec(data_spec, config, implicit)
-    xi, X = _ImplicitSolution.apply(
-        result.pose_tangent, result.points, pose_tangent, points, spec, *theta
-    )
+    unconverged = [b for b, ok in enumerate(result.converged) if not ok]
+    if unconverged and on_unconverged == "raise":
+        raise RuntimeError(
+            f"solve_differentiable: {_describe(result, unconverged)} did not converge, so the "
+            "implicit gradient (which assumes a minimum) would not be the derivative of the "
+            "solution returned (on_unconverged='raise'). Raise max_iterations or loosen the "
+            "tolerances, or pass on_unconverged='unroll' to differentiate the iterations "
+            "actually run."
+        )
+    unroll = bool(unconverged) and on_unconverged in ("warn", "unroll")
+    if unroll and on_unconverged == "warn":
+        warnings.warn(
+            f"solve_differentiable: {_describe(result, unconverged)} did not converge; their "
+            "gradients are those of the iterations actually run (an unrolled re-run), not the "
+            "implicit gradient at a minimum. Pass on_unconverged='unroll' to silence this, "
+            "'raise' to refuse, or 'implicit' for the implicit gradient anyway.",
+            UserWarning,
+            stacklevel=3,
+        )
+    xi_star, X_star = result.pose_tangent, result.points
+    if unroll:
+        # The implicit backward still runs on the whole batch; the unrolled problems send it
+        # a zero gradient. Their slots get the (finite) initial guess, so that a non-finite
+        # iterate cannot turn that zero into NaN (0 · NaN) in the Hessian solve.
+        rerun = torch.tensor([b in unconverged for b in range(len(result.status))])
+        rerun = rerun.to(xi_star.device)
+        xi_star = torch.where(rerun[:, None, None], pose_tangent.detach(), xi_star)
+        X_star = torch.where(rerun[:, None, None], points.detach(), X_star)
+    xi, X = xi_star, X_star
+    if len(unconverged) < len(result.status) or not unroll:
+        spec = _ImplicitSpec(data_spec, config, implicit)
+        xi, X = _ImplicitSolution.apply(xi_star, X_star, pose_tangent, points, spec, *theta)
+    if unroll:
+        # Unrolled: the same iterations with autograd on (problems are independent in the
+        # batch, so the others do not change them); no problem needs more than the most any
+        # unconverged problem used.
+        cap = int(result.iterations[unconverged].max())
+        rerun_config = dataclasses.replace(config, reduced_solver="dense", max_iterations=cap)
+        with _checks.validation(False):
+            state, _, _ = _run(pose_tangent, points, data, rerun_config, None)
+        xi = torch.where(rerun[:, None, None], state.xi, xi)
+        X = torch.where(rerun[:, None, None], state.X, X)
     with _checks.validation(False):
         final_cost = cost(xi, X, data)
     return dataclasses.replace(result, pose_tangent=xi, points=X, final_cost=final_cost)
+
+
+def _describe(result: SolveResult, problems: list[int], limit: int = 10) -> str:
+    """'problem 1 (MAX_ITERATIONS)' / 'problems 0 (…), 3 (…) and 5 more' for a message."""
+    shown = ", ".join(f"{b} ({result.status[b].name})" for b in problems[:limit])
+    more = f" and {len(problems) - limit} more" if len(problems) > limit else ""
+    return f"problem{'s' if len(problems) > 1 else ''} {shown}{more} of {len(result.status)}"
+
+
+# ------------------------------------------------------------------------------------------
+# Inputs whose autograd graph a previous backward already freed
+
+# At most this many autograd nodes are visited per solve, breadth first from the inputs (the
+# nodes nearest to them, which a previous backward through them freed first): a host-side
+# walk of a few milliseconds at most, no device work.
+_GRAPH_CHECK_NODES = 1000
+# Per autograd node class, the attributes holding its raw saved tensors.
+_SAVED_ATTRIBUTES: dict[type, tuple[str, ...]] = {}
+
+
+def _freed(node: object) -> bool:
+    """True if ``node`` is an autograd node whose saved tensors a backward has released.
+
+    Reads the raw saved tensors (``_raw_saved_*``, ``.data`` is None once freed), never
+    unpacks a live one: unpacking would run saved-tensor hooks (``save_on_cpu`` copies,
+    checkpointing's recomputation). A custom Function's node raises on its raw tensors once
+    they are freed."""
+    names = _SAVED_ATTRIBUTES.get(type(node))
+    if names is None:
+        names = tuple(a for a in dir(node) if a.startswith("_raw_saved_"))
+        _SAVED_ATTRIBUTES[type(node)] = names
+    for name in names:
+        try:
+            raw = getattr(node, name)
+        except RuntimeError as error:
+            if "freed" in str(error):
+                return True
+            continue
+        for saved in raw if isinstance(raw, (list, tuple)) else (raw,):
+            if getattr(saved, "data", True) is not None:
+                continue
+            # Freed, or an optional saved tensor that was never defined: only a freed one
+            # raises when unpacked (and a freed one has no hook left to run).
+            try:
+                getattr(node, "_saved_" + name[len("_raw_saved_") :], None)
+            except RuntimeError as error:
+                if "freed" in str(error):
+                    return True
+    return False
+
+
+def _check_graphs_alive(fn: str, pose_tangent: Tensor, points: Tensor, data: PointMapData) -> None:
+    """Raise a ValueError naming the input whose graph a previous backward freed (module
+    doc): torch's own error would come only at the next backward, without the remedy."""
+    spec = _DataSpec.of(data)
+    names = [f"data.{f}" for f in spec.fields]
+    names += [f"data.loss.{a}" for a in spec.loss_attributes]
+    names += [f"data.terms[{i}] {n!r}" for i, ns in enumerate(spec.term_tensors) for n in ns]
+    inputs = [("pose_tangent", pose_tangent), ("points", points)]
+    inputs += list(zip(names, spec.tensors(), strict=True))
+    seen: set = set()
+    budget = _GRAPH_CHECK_NODES
+    for name, tensor in inputs:
+        queue = collections.deque([tensor.grad_fn])
+        while queue and budget > 0:
+            node = queue.popleft()
+            if node is None or node in seen:
+                continue
+            seen.add(node)
+            budget -= 1
+            if _freed(node):
+                raise ValueError(
+                    f"{fn}: '{name}' was computed by an autograd graph that a previous "
+                    f"backward() already freed (its node {type(node).__name__}), so no gradient "
+                    "can reach what it was computed from. A tensor computed once (e.g. "
+                    "weights=torch.sigmoid(logits) in a PointMapProblem built before the "
+                    "training loop) serves one backward only: recompute it for every solve, "
+                    "e.g. data = dataclasses.replace(problem.data, "
+                    "weights=torch.sigmoid(logits)), or build the problem inside the loop."
+                )
+            queue.extend(next_node for next_node, _ in node.next_functions)
