@@ -11,6 +11,7 @@ inputs once.
 from __future__ import annotations
 
 import contextlib
+import operator
 from collections.abc import Iterator, Sequence
 
 import torch
@@ -133,14 +134,15 @@ def check_rotation(fn: str, name: str, R: Tensor) -> None:
     deviation = (Rd.transpose(-1, -2) @ Rd - eye).abs().amax(dim=(-1, -2))
     det = torch.linalg.det(Rd)
     tol = orthonormality_tolerance(R.dtype)
-    bad = (deviation > tol) | (det <= 0)
+    # NaN-safe: RᵀR and det overflow to Inf/NaN for huge finite entries, and NaN > tol is False.
+    bad = ~(deviation <= tol) | ~(det > 0)
     if bool(bad.any()):
         idx = tuple(int(i) for i in bad.nonzero()[0].tolist())
         raise ValueError(
             f"{fn}: argument '{name}' must hold rotation matrices (RᵀR = I within {tol:g}, "
-            f"det = +1); at batch index {idx} max|RᵀR - I| = {float(deviation[idx]):.3g}, "
-            f"det = {float(det[idx]):.6g}. Project it first with "
-            "torchslam.lie.so3.project(R)"
+            f"det = +1); at batch index {idx} max|RᵀR - I| = "
+            f"{_deviation_str(deviation[idx], Rd[idx])}, det = {float(det[idx]):.6g}. "
+            "Project it first with torchslam.lie.so3.project(R)"
         )
 
 
@@ -149,14 +151,14 @@ def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
     check_finite(fn, name, q)
     if not value_checks_active() or q.numel() == 0:
         return
-    deviation = (torch.linalg.vector_norm(q.detach(), dim=-1) - 1).abs()
+    norm = torch.linalg.vector_norm(q.detach(), dim=-1)
     tol = orthonormality_tolerance(q.dtype)
-    bad = deviation > tol
+    bad = ~((norm - 1).abs() <= tol)  # NaN-safe
     if bool(bad.any()):
         idx = tuple(int(i) for i in bad.nonzero()[0].tolist())
         raise ValueError(
             f"{fn}: argument '{name}' must hold unit quaternions (|q| = 1 within {tol:g}); "
-            f"at batch index {idx} |q| = {float(deviation[idx]) + 1:.6g}. "
+            f"at batch index {idx} |q| = {_magnitude_str(q.detach()[idx])}. "
             "Normalize it first with q / q.norm(dim=-1, keepdim=True)"
         )
 
@@ -176,3 +178,112 @@ def check_pose_matrix(fn: str, name: str, T: Tensor) -> None:
             f"{fn}: argument '{name}' must have bottom row [0, 0, 0, 1]; at batch index {idx} "
             f"it is {bottom[idx].tolist()}"
         )
+
+
+# --------------------------------------------------------------------------------------------
+# Lie-group boundary checks (lie-checks branch): NaN-safe messages, broadcasting, sizes and
+# results that overflow although the arguments are finite.
+# --------------------------------------------------------------------------------------------
+
+
+def _magnitude_str(x: Tensor) -> str:
+    """The Euclidean norm of ``x`` for a message, computed without overflow or underflow."""
+    scale = x.abs().amax() if x.numel() else x.new_zeros(())
+    if not bool(torch.isfinite(scale)):
+        return "non-finite"
+    if float(scale) == 0.0:
+        return "0"
+    # |x| = s·|x / s|; in float64 on the host (Python floats), so 1e300 prints as 1.7e300.
+    ratio = float(torch.linalg.vector_norm((x / scale).double()))
+    return f"{float(scale) * ratio:.6g}"
+
+
+def _deviation_str(deviation: Tensor, R: Tensor) -> str:
+    """max|RᵀR − I| for a message; when it overflows, say so and give the largest entry."""
+    if bool(torch.isfinite(deviation)):
+        return f"{float(deviation):.3g}"
+    return f"too large to compute (largest |entry| = {float(R.abs().amax()):.3g})"
+
+
+def check_broadcast(fn: str, **batch_shapes: Sequence[int]) -> tuple[int, ...]:
+    """Broadcast the leading (batch) shapes of named arguments, or raise ValueError naming them.
+
+    Args:
+        fn: public function name for the message.
+        batch_shapes: argument name → its batch shape (the shape without the trailing dims).
+
+    Returns:
+        The broadcast batch shape.
+    """
+    try:
+        return tuple(torch.broadcast_shapes(*(tuple(s) for s in batch_shapes.values())))
+    except RuntimeError:
+        described = " and ".join(
+            f"'{name}' with batch shape {tuple(shape)}" for name, shape in batch_shapes.items()
+        )
+        raise ValueError(
+            f"{fn}: the leading (batch) dims of the arguments do not broadcast: {described}"
+        ) from None
+
+
+def check_sizes(fn: str, name: str, sizes: Sequence[object]) -> tuple[int, ...]:
+    """Check a batch shape given as ints (TypeError unless int-like, ValueError if negative)."""
+    checked = []
+    for size in sizes:
+        try:
+            if isinstance(size, bool):
+                raise TypeError
+            value = operator.index(size)  # int, numpy integers, 0-dim integer tensors
+        except TypeError:
+            raise TypeError(
+                f"{fn}: argument '{name}' must be ints, got {type(size).__name__} ({size!r})"
+            ) from None
+        if value < 0:
+            raise ValueError(f"{fn}: argument '{name}' must be non-negative ints, got {value}")
+        checked.append(value)
+    return tuple(checked)
+
+
+def check_dtype_device(fn: str, dtype: object, device: object) -> None:
+    """Check the ``dtype`` (float32/float64) and ``device`` keyword arguments of a factory."""
+    if dtype not in _SUPPORTED_DTYPES:
+        raise TypeError(
+            f"{fn}: argument 'dtype' must be torch.float32 or torch.float64, got {dtype}"
+        )
+    if device is None or isinstance(device, torch.device):
+        return
+    if not isinstance(device, str):
+        raise TypeError(
+            f"{fn}: argument 'device' must be a torch.device, a str or None, "
+            f"got {type(device).__name__}"
+        )
+    try:
+        torch.device(device)
+    except RuntimeError as error:
+        raise ValueError(f"{fn}: argument 'device' is not a device: {device!r} ({error})") from None
+
+
+def check_result_finite(
+    fn: str, result: Tensor, *, reason: str | None = None, **arguments: Tensor
+) -> None:
+    """Raise ValueError if ``result`` overflowed (only when value checks are active).
+
+    Call it after the arguments passed :func:`check_finite`: a non-finite result then means the
+    arguments are too large in magnitude for the result to be representable in their dtype
+    (or the map is singular there); the message names every argument with its magnitude.
+    """
+    if not value_checks_active() or result.numel() == 0:
+        return
+    if bool(torch.isfinite(result.detach()).all()):
+        return
+    described = ", ".join(
+        f"'{name}' (largest |entry| {float(t.detach().abs().amax()):.3g})"
+        if t.numel()
+        else f"'{name}'"
+        for name, t in arguments.items()
+    )
+    why = reason or "too large in magnitude for the result to be representable"
+    raise ValueError(
+        f"{fn}: the result is not finite ({result.dtype}) although the arguments are finite: "
+        f"argument(s) {described}: {why}"
+    )

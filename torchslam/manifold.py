@@ -64,13 +64,7 @@ def _check_perturbation(owner: str, perturbation: object) -> None:
 
 def _broadcast_batch(fn: str, **batch_shapes: tuple[int, ...]) -> tuple[int, ...]:
     """Broadcast the leading (batch) shapes of named arguments; ValueError naming them if not."""
-    try:
-        return tuple(torch.broadcast_shapes(*batch_shapes.values()))
-    except RuntimeError:
-        described = ", ".join(f"'{name}' {tuple(shape)}" for name, shape in batch_shapes.items())
-        raise ValueError(
-            f"{fn}: the leading (batch) dims of the arguments do not broadcast: {described}"
-        ) from None
+    return _checks.check_broadcast(fn, **batch_shapes)
 
 
 class Manifold(abc.ABC):
@@ -118,7 +112,9 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, x=self._batch_shape(x), delta=tuple(delta.shape[:-1]))
         self._check_point_values(fn, "x", x)
         _checks.check_finite(fn, "delta", delta)
-        return self._plus(x, delta)
+        result = self._plus(x, delta)
+        _checks.check_result_finite(fn, result, x=x, delta=delta)
+        return result
 
     def minus(self, y: Tensor, x: Tensor) -> Tensor:
         """The inverse retraction y ⊟ x (Ceres' Minus): ``plus(x, minus(y, x)) = y``.
@@ -137,7 +133,9 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, y=self._batch_shape(y), x=self._batch_shape(x))
         self._check_point_values(fn, "y", y)
         self._check_point_values(fn, "x", x)
-        return self._minus(y, x)
+        result = self._minus(y, x)
+        _checks.check_result_finite(fn, result, y=y, x=x)
+        return result
 
     def plus_jacobian(self, x: Tensor) -> Tensor:
         """J_GL = ∂plus(x, δ)/∂δ at δ = 0, w.r.t. δ, at x (Ceres' PlusJacobian).
@@ -152,7 +150,9 @@ class Manifold(abc.ABC):
         fn = self._fn("plus_jacobian")
         self._check_point_metadata(fn, "x", x)
         self._check_point_values(fn, "x", x)
-        return self._plus_jacobian(x)
+        result = self._plus_jacobian(x)
+        _checks.check_result_finite(fn, result, x=x)
+        return result
 
     def minus_jacobian(self, x: Tensor) -> Tensor:
         """∂minus(y, x)/∂y at y = x, w.r.t. y, at x (Ceres' MinusJacobian).
@@ -169,7 +169,9 @@ class Manifold(abc.ABC):
         fn = self._fn("minus_jacobian")
         self._check_point_metadata(fn, "x", x)
         self._check_point_values(fn, "x", x)
-        return self._minus_jacobian(x)
+        result = self._minus_jacobian(x)
+        _checks.check_result_finite(fn, result, x=x)
+        return result
 
     def right_multiply_by_plus_jacobian(self, x: Tensor, J_r_ambient: Tensor) -> Tensor:
         """The seed's chain rule J_rL = J_rG · J_GL (Ceres' RightMultiplyByPlusJacobian).
@@ -199,7 +201,9 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, x=self._batch_shape(x), J_r_ambient=tuple(J_r_ambient.shape[:-2]))
         self._check_point_values(fn, "x", x)
         _checks.check_finite(fn, "J_r_ambient", J_r_ambient)
-        return self._right_multiply_by_plus_jacobian(x, J_r_ambient)
+        result = self._right_multiply_by_plus_jacobian(x, J_r_ambient)
+        _checks.check_result_finite(fn, result, x=x, J_r_ambient=J_r_ambient)
+        return result
 
     # ------------------------------------------------------------- private math
 
@@ -339,8 +343,8 @@ class SE3Matrix(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return x @ se3._exp(delta)
-        return se3._exp(delta) @ x
+            return x @ se3._exp_robust(delta)
+        return se3._exp_robust(delta) @ x
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         R, t = x[..., :3, :3], x[..., :3, 3:]
@@ -424,11 +428,8 @@ def _quaternion_conjugate(q: Tensor) -> Tensor:
 def _quaternion_exp(delta: Tensor) -> Tensor:
     """Exp of a rotation vector as a unit quaternion (cos(θ/2), sin(θ/2)/θ · δ), exact at θ = 0."""
     # With φ = θ/2: cos φ = 1 − φ²·b(φ²) and sin φ / θ = a(φ²)/2, from the series-safe
-    # Rodrigues coefficients (a, b) = (sin φ/φ, (1 − cos φ)/φ²).
-    half2 = 0.25 * (delta * delta).sum(-1)
-    a, b = _series.sinc_coefficients(half2)
-    w = 1.0 - half2 * b
-    return torch.cat((w[..., None], (0.5 * a)[..., None] * delta), dim=-1)
+    # Rodrigues coefficients (a, b) = (sin φ/φ, (1 − cos φ)/φ²); a unit-axis form for huge θ.
+    return so3._axis_angle_to_quaternion(delta)
 
 
 def _quaternion_log(q: Tensor) -> Tensor:
@@ -581,7 +582,7 @@ class SE3Tangent(Manifold):
             return
         angle = torch.linalg.vector_norm(x.detach()[..., :3], dim=-1)
         limit = math.pi + _checks.orthonormality_tolerance(x.dtype)
-        bad = angle > limit
+        bad = ~(angle <= limit)  # NaN-safe
         if bool(bad.any()):
             idx = tuple(int(i) for i in bad.nonzero()[0].tolist())
             raise ValueError(
@@ -592,20 +593,20 @@ class SE3Tangent(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._exp(x) @ se3._exp(delta))
-        return se3._log(se3._exp(delta) @ se3._exp(x))
+            return se3._log(se3._exp_robust(x) @ se3._exp_robust(delta))
+        return se3._log(se3._exp_robust(delta) @ se3._exp_robust(x))
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._inverse(se3._exp(x)) @ se3._exp(y))
-        return se3._log(se3._exp(y) @ se3._inverse(se3._exp(x)))
+            return se3._log(se3._inverse(se3._exp_robust(x)) @ se3._exp_robust(y))
+        return se3._log(se3._exp_robust(y) @ se3._inverse(se3._exp_robust(x)))
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl_inv(-x)  # jr_inv(ξ)
-        return se3._jl_inv(x)
+            return se3._jl_inv_robust(-x)  # jr_inv(ξ)
+        return se3._jl_inv_robust(x)
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl(-x)  # jr(ξ)
-        return se3._jl(x)
+            return se3._jl_robust(-x)  # jr(ξ)
+        return se3._jl_robust(x)

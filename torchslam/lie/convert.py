@@ -86,7 +86,9 @@ def axis_angle_to_quaternion(omega: Tensor) -> Tensor:
     """Unit quaternion (w, x, y, z) of a rotation vector: (cos(θ/2), sin(θ/2) ω/θ).
 
     Exact and differentiable at θ = 0 (series coefficients). w ≥ 0 for θ ≤ π; for θ > π the
-    quaternion is returned as computed (w < 0), which is the same rotation as −q.
+    quaternion is returned as computed (w < 0), which is the same rotation as −q. Finite for
+    every finite ω; beyond |ω| = 2²⁰ (float64) / 2¹⁰ (float32) the angle is reduced modulo 2π
+    and the sign of q is arbitrary.
 
     Args:
         omega: rotation vectors ω = θ·axis (radians), shape (..., 3).
@@ -96,11 +98,7 @@ def axis_angle_to_quaternion(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.axis_angle_to_quaternion", "omega", omega, (3,))
     _checks.check_finite("convert.axis_angle_to_quaternion", "omega", omega)
-    # With x = θ/2: sin(x)/x and (1 − cos x)/x² are the Rodrigues coefficients at x².
-    half2 = 0.25 * (omega * omega).sum(-1)
-    a, b = _series.sinc_coefficients(half2)
-    w = 1.0 - half2 * b
-    return torch.cat((w[..., None], (0.5 * a)[..., None] * omega), dim=-1)
+    return so3._axis_angle_to_quaternion(omega)
 
 
 def quaternion_to_axis_angle(q: Tensor) -> Tensor:
@@ -134,7 +132,7 @@ def axis_angle_to_matrix(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.axis_angle_to_matrix", "omega", omega, (3,))
     _checks.check_finite("convert.axis_angle_to_matrix", "omega", omega)
-    return so3._exp(omega)
+    return so3._exp_robust(omega)
 
 
 def matrix_to_axis_angle(R: Tensor) -> Tensor:
@@ -168,10 +166,10 @@ def pose_from_translation_quaternion(t: Tensor, q: Tensor) -> Tensor:
     _checks.check_tensor(fn, "t", t, (3,))
     _checks.check_tensor(fn, "q", q, (4,))
     _checks.check_same_kind(fn, t=t, q=q)
+    batch = _checks.check_broadcast(fn, t=t.shape[:-1], q=q.shape[:-1])
     _checks.check_finite(fn, "t", t)
     _checks.check_unit_quaternion(fn, "q", q)
     R = _pk_rotation.quaternion_to_matrix(q)
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
     return se3._assemble(R.expand(*batch, 3, 3), t.expand(*batch, 3))
 
 

@@ -12,6 +12,13 @@ Conventions (kept across torchslam):
 
 All functions take arbitrary leading batch dims, keep dtype/device, are differentiable and
 ``torch.func`` (vmap/jacrev) compatible.
+
+Bad input is rejected at the boundary: shapes, dtypes and broadcasting always (TypeError /
+ValueError naming the function and the argument); NaN/Inf, non-rigid transforms and results
+that overflow although the input is finite when value checks are active (see
+:func:`torchslam.validation`). Finite input never gives NaN: huge rotation vectors use the
+unit-axis form of ``so3`` and huge translations are scaled by an exact power of two inside the
+formulas (:func:`_scale_down`).
 """
 
 from __future__ import annotations
@@ -50,23 +57,53 @@ def _assemble(R: Tensor, t: Tensor) -> Tensor:
     return torch.cat((top, bottom), dim=-2)
 
 
+# Translations with an entry beyond the first bound are scaled by the second (an exact power of
+# two) inside exp and the Jacobians, and the result scaled back, so that products like
+# ω × (ω × v) and the Q block cannot overflow; other translations are multiplied by exactly 1.
+_TRANSLATION_SCALE = {torch.float32: (2.0**64, 2.0**-64), torch.float64: (2.0**512, 2.0**-512)}
+# Large-angle Q-block coefficients use min(θ, cap): they differ from their limit by O(1/θ),
+# far below round-off at the cap, and cap·|v| stays representable after _scale_down.
+_ANGLE_CAP = {torch.float32: 2.0**40, torch.float64: 2.0**300}
+
+
+def _scale_down(v: Tensor) -> tuple[Tensor, Tensor]:
+    """(v·s, 1/s) with s = 1, or an exact power of two for translations with huge entries."""
+    bound, factor = _TRANSLATION_SCALE[v.dtype]
+    largest = v.abs().amax(dim=-1)
+    big = largest > bound
+    scale = torch.where(big, torch.full_like(largest, factor), 1.0)
+    return v * scale[..., None], torch.where(big, torch.full_like(largest, 1.0 / factor), 1.0)
+
+
 def from_rotation_translation(R: Tensor, t: Tensor) -> Tensor:
     """Build T = [[R, t], [0, 1]] from rotations (..., 3, 3) and translations (..., 3).
 
-    Leading dims broadcast. Returns (..., 4, 4).
+    Leading dims broadcast. Returns (..., 4, 4). ``R`` is checked (orthonormal, det +1) and
+    both are checked finite when validation is on.
     """
-    _checks.check_tensor("se3.from_rotation_translation", "R", R, (3, 3))
-    _checks.check_tensor("se3.from_rotation_translation", "t", t, (3,))
-    _checks.check_same_kind("se3.from_rotation_translation", R=R, t=t)
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    fn = "se3.from_rotation_translation"
+    _checks.check_tensor(fn, "R", R, (3, 3))
+    _checks.check_tensor(fn, "t", t, (3,))
+    _checks.check_same_kind(fn, R=R, t=t)
+    batch = _checks.check_broadcast(fn, R=R.shape[:-2], t=t.shape[:-1])
+    _checks.check_rotation(fn, "R", R)
+    _checks.check_finite(fn, "t", t)
     return _assemble(R.expand(*batch, 3, 3), t.expand(*batch, 3))
 
 
 def identity(
     *batch_shape: int, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
 ) -> Tensor:
-    """Identity transforms of shape (*batch_shape, 4, 4) (float64 by default)."""
-    return torch.eye(4, dtype=dtype, device=device).expand(*batch_shape, 4, 4).clone()
+    """Identity transforms of shape (*batch_shape, 4, 4) (float64 by default).
+
+    Args:
+        batch_shape: non-negative ints (none for a single (4, 4) transform).
+        dtype: torch.float32 or torch.float64.
+        device: where to create the transforms.
+    """
+    sizes = _checks.check_sizes("se3.identity", "batch_shape", batch_shape)
+    _checks.check_dtype_device("se3.identity", dtype, device)
+    return torch.eye(4, dtype=dtype, device=device).expand(*sizes, 4, 4).clone()
 
 
 def hat(xi: Tensor) -> Tensor:
@@ -79,6 +116,7 @@ def hat(xi: Tensor) -> Tensor:
         se(3) matrices, shape (..., 4, 4).
     """
     _checks.check_tensor("se3.hat", "xi", xi, (6,))
+    _checks.check_finite("se3.hat", "xi", xi)
     top = torch.cat((so3._hat(xi[..., :3]), xi[..., 3:, None]), dim=-1)
     return torch.cat((top, torch.zeros_like(top[..., :1, :])), dim=-2)
 
@@ -93,10 +131,12 @@ def vee(Xi: Tensor) -> Tensor:
         Twists, shape (..., 6).
     """
     _checks.check_tensor("se3.vee", "Xi", Xi, (4, 4))
+    _checks.check_finite("se3.vee", "Xi", Xi)
     return torch.cat((so3._vee(Xi[..., :3, :3]), Xi[..., :3, 3]), dim=-1)
 
 
 def _exp(xi: Tensor) -> Tensor:
+    # The θ-power form, for the solver's hot path; _exp_robust for the public API.
     omega, v = xi[..., :3], xi[..., 3:]
     theta2 = (omega * omega).sum(-1)
     a, b = _series.sinc_coefficients(theta2)
@@ -106,6 +146,22 @@ def _exp(xi: Tensor) -> Tensor:
     w_x_v = torch.linalg.cross(omega, v, dim=-1)
     t = v + b[..., None] * w_x_v + c[..., None] * torch.linalg.cross(omega, w_x_v, dim=-1)
     return _assemble(R, t)
+
+
+def _exp_robust(xi: Tensor) -> Tensor:
+    # Bitwise equal to _exp for |ω| ≤ 2²⁰ and |v| ≤ 2⁵¹² (float32: 2¹⁰, 2⁶⁴); finite beyond.
+    omega, v = xi[..., :3], xi[..., 3:]
+    p = so3._polar(omega)
+    a, b = _series.sinc_coefficients(p.theta2)
+    a, b_R = so3._rodrigues_coefficients(p, a, b)
+    R = so3._skew_quadratic(p.w, p.theta2, a, b_R)
+    # t = J_l(ω) v = v + b ω × v + c ω × (ω × v), without forming J_l (w = ω, or the unit
+    # axis with the matching coefficients for huge angles; v scaled when huge).
+    b, c = so3._jl_coefficients(p, b)
+    v, unscale = _scale_down(v)
+    w_x_v = torch.linalg.cross(p.w, v, dim=-1)
+    t = v + b[..., None] * w_x_v + c[..., None] * torch.linalg.cross(p.w, w_x_v, dim=-1)
+    return _assemble(R, t * unscale[..., None])
 
 
 def exp(xi: Tensor) -> Tensor:
@@ -119,7 +175,9 @@ def exp(xi: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.exp", "xi", xi, (6,))
     _checks.check_finite("se3.exp", "xi", xi)
-    return _exp(xi)
+    result = _exp_robust(xi)
+    _checks.check_result_finite("se3.exp", result, xi=xi)
+    return result
 
 
 def _log(T: Tensor) -> Tensor:
@@ -139,7 +197,9 @@ def log(T: Tensor) -> Tensor:
     """
     _checks.check_tensor("se3.log", "T", T, (4, 4))
     _checks.check_pose_matrix("se3.log", "T", T)
-    return _log(T)
+    result = _log(T)
+    _checks.check_result_finite("se3.log", result, T=T)
+    return result
 
 
 def _inverse(T: Tensor) -> Tensor:
@@ -151,29 +211,39 @@ def inverse(T: Tensor) -> Tensor:
     """Inverse transform [[Rᵀ, −Rᵀ t], [0, 1]].
 
     Args:
-        T: rigid transforms, shape (..., 4, 4).
+        T: rigid transforms, shape (..., 4, 4); checked (rigid, bottom row [0, 0, 0, 1]) when
+            validation is on, since the formula inverts rigid transforms only.
 
     Returns:
         T⁻¹, shape (..., 4, 4).
     """
     _checks.check_tensor("se3.inverse", "T", T, (4, 4))
-    return _inverse(T)
+    _checks.check_pose_matrix("se3.inverse", "T", T)
+    result = _inverse(T)
+    _checks.check_result_finite("se3.inverse", result, T=T)
+    return result
 
 
 def compose(T1: Tensor, T2: Tensor) -> Tensor:
     """Composition T1 · T2 (apply T2 first); leading dims broadcast.
 
     Args:
-        T1: rigid transforms, shape (..., 4, 4).
-        T2: rigid transforms, shape (..., 4, 4).
+        T1: rigid transforms, shape (..., 4, 4); checked when validation is on.
+        T2: rigid transforms, shape (..., 4, 4); checked when validation is on.
 
     Returns:
         T1 @ T2, shape broadcast(...) + (4, 4).
     """
-    _checks.check_tensor("se3.compose", "T1", T1, (4, 4))
-    _checks.check_tensor("se3.compose", "T2", T2, (4, 4))
-    _checks.check_same_kind("se3.compose", T1=T1, T2=T2)
-    return T1 @ T2
+    fn = "se3.compose"
+    _checks.check_tensor(fn, "T1", T1, (4, 4))
+    _checks.check_tensor(fn, "T2", T2, (4, 4))
+    _checks.check_same_kind(fn, T1=T1, T2=T2)
+    _checks.check_broadcast(fn, T1=T1.shape[:-2], T2=T2.shape[:-2])
+    _checks.check_pose_matrix(fn, "T1", T1)
+    _checks.check_pose_matrix(fn, "T2", T2)
+    result = T1 @ T2
+    _checks.check_result_finite(fn, result, T1=T1, T2=T2)
+    return result
 
 
 def _act(T: Tensor, points: Tensor) -> Tensor:
@@ -186,16 +256,22 @@ def act(T: Tensor, points: Tensor) -> Tensor:
     For N points per pose, pass ``T[..., None, :, :]`` with points of shape (..., N, 3).
 
     Args:
-        T: rigid transforms, shape (..., 4, 4).
+        T: rigid transforms, shape (..., 4, 4); checked when validation is on.
         points: points, shape (..., 3).
 
     Returns:
         Transformed points, shape broadcast(T.shape[:-2], points.shape[:-1]) + (3,).
     """
-    _checks.check_tensor("se3.act", "T", T, (4, 4))
-    _checks.check_tensor("se3.act", "points", points, (3,))
-    _checks.check_same_kind("se3.act", T=T, points=points)
-    return _act(T, points)
+    fn = "se3.act"
+    _checks.check_tensor(fn, "T", T, (4, 4))
+    _checks.check_tensor(fn, "points", points, (3,))
+    _checks.check_same_kind(fn, T=T, points=points)
+    _checks.check_broadcast(fn, T=T.shape[:-2], points=points.shape[:-1])
+    _checks.check_pose_matrix(fn, "T", T)
+    _checks.check_finite(fn, "points", points)
+    result = _act(T, points)
+    _checks.check_result_finite(fn, result, T=T, points=points)
+    return result
 
 
 def _adjoint(T: Tensor) -> Tensor:
@@ -211,13 +287,33 @@ def adjoint(T: Tensor) -> Tensor:
     Satisfies T · Exp(d) · T⁻¹ = Exp(adjoint(T) d).
 
     Args:
-        T: rigid transforms, shape (..., 4, 4).
+        T: rigid transforms, shape (..., 4, 4); checked when validation is on.
 
     Returns:
         Adjoint matrices, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.adjoint", "T", T, (4, 4))
-    return _adjoint(T)
+    _checks.check_pose_matrix("se3.adjoint", "T", T)
+    result = _adjoint(T)
+    _checks.check_result_finite("se3.adjoint", result, T=T)
+    return result
+
+
+def _q_combination(
+    W: Tensor, V: Tensor, c: Tensor, q2: Tensor, q3: Tensor, kappa: Tensor | None = None
+) -> Tensor:
+    """½V + c (WV + VW + κ·WVW) + q2 (WWV + VWW − 3WVW) + q3 (WVWW + WWVW); κ = 1 if None."""
+    WV, VW = W @ V, V @ W
+    WVW = WV @ W
+    WWV = W @ WV
+    VWW = VW @ W
+    kWVW = WVW if kappa is None else kappa[..., None, None] * WVW
+    return (
+        0.5 * V
+        + c[..., None, None] * (WV + VW + kWVW)
+        + q2[..., None, None] * (WWV + VWW - 3.0 * WVW)
+        + q3[..., None, None] * (WVW @ W + W @ WVW)
+    )
 
 
 def _q_block(omega: Tensor, v: Tensor) -> Tensor:
@@ -225,17 +321,32 @@ def _q_block(omega: Tensor, v: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)
     c = _series.jacobian_coefficient_c(theta2)
     q2, q3 = _series.se3_q_coefficients(theta2)
-    W, V = _hat(omega), _hat(v)
-    WV, VW = W @ V, V @ W
-    WVW = WV @ W
-    WWV = W @ WV
-    VWW = VW @ W
-    return (
-        0.5 * V
-        + c[..., None, None] * (WV + VW + WVW)
-        + q2[..., None, None] * (WWV + VWW - 3.0 * WVW)
-        + q3[..., None, None] * (WVW @ W + W @ WVW)
-    )
+    return _q_combination(_hat(omega), _hat(v), c, q2, q3)
+
+
+def _q_block_robust(p: so3._Polar, v: Tensor) -> tuple[Tensor, Tensor]:
+    """Barfoot's Q(ρ = v, φ = ω), the lower-left block of the SE(3) left Jacobian, as (Q·s, 1/s).
+
+    Q = ½V + c (WV + VW + WVW) + q2 (WWV + VWW − 3WVW) + q3 (WVWW + WWVW) with W = [ω]×,
+    V = [v]×. For huge angles W = θ[u]× and the θ powers move into the coefficients:
+    (c, κ, q2, q3) → (cθ, θ, q2θ², q3θ³) with κ the factor of WVW inside the c term (1 for
+    ordinary angles). s is the exact power of two of :func:`_scale_down` (1 for ordinary v).
+    """
+    c = _series.jacobian_coefficient_c(p.theta2)
+    q2, q3 = _series.se3_q_coefficients(p.theta2)
+    theta = p.theta.clamp_max(_ANGLE_CAP[p.theta.dtype])
+    r = 1.0 / theta
+    sin_theta, one_minus_cos = p.sin_theta, p.one_minus_cos
+    c = torch.where(p.large, r - sin_theta * r * r, c)
+    kappa = torch.where(p.large, theta, 1.0)
+    q2 = torch.where(p.large, 0.5 - one_minus_cos * r * r, q2)
+    q3 = torch.where(p.large, (0.5 * (3.0 - one_minus_cos) - 1.5 * sin_theta * r) * r, q3)
+    v, unscale = _scale_down(v)
+    return _q_combination(_hat(p.w), _hat(v), c, q2, q3, kappa), unscale[..., None, None]
+
+
+# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
+# public functions and the manifolds use the _robust forms (bitwise equal for ordinary input).
 
 
 def _jl(xi: Tensor) -> Tensor:
@@ -254,6 +365,30 @@ def _jl_inv(xi: Tensor) -> Tensor:
     return torch.cat((top, torch.cat((-J_inv @ Q @ J_inv, J_inv), dim=-1)), dim=-2)
 
 
+def _jl_robust(xi: Tensor) -> Tensor:
+    omega, v = xi[..., :3], xi[..., 3:]
+    p = so3._polar(omega)
+    J = so3._jl_from_polar(p)
+    Q, unscale = _q_block_robust(p, v)
+    top = torch.cat((J, torch.zeros_like(J)), dim=-1)
+    return torch.cat((top, torch.cat((Q * unscale, J), dim=-1)), dim=-2)
+
+
+def _jl_inv_robust(xi: Tensor) -> Tensor:
+    omega, v = xi[..., :3], xi[..., 3:]
+    p = so3._polar(omega)
+    J_inv = so3._jl_inv_from_polar(p)
+    Q, unscale = _q_block_robust(p, v)
+    top = torch.cat((J_inv, torch.zeros_like(J_inv)), dim=-1)
+    return torch.cat((top, torch.cat(((-J_inv @ Q @ J_inv) * unscale, J_inv), dim=-1)), dim=-2)
+
+
+_JL_INV_REASON = (
+    "J_l is singular at |ω| = 2πk (k ≥ 1) and its inverse grows like |ω|²·|v|, so the inverse "
+    "is not representable here"
+)
+
+
 def jl(xi: Tensor) -> Tensor:
     """Left Jacobian of SE(3) in (ω, v) order: [[J_l(ω), 0], [Q(v, ω), J_l(ω)]].
 
@@ -266,7 +401,10 @@ def jl(xi: Tensor) -> Tensor:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jl", "xi", xi, (6,))
-    return _jl(xi)
+    _checks.check_finite("se3.jl", "xi", xi)
+    result = _jl_robust(xi)
+    _checks.check_result_finite("se3.jl", result, xi=xi)
+    return result
 
 
 def jr(xi: Tensor) -> Tensor:
@@ -279,7 +417,10 @@ def jr(xi: Tensor) -> Tensor:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jr", "xi", xi, (6,))
-    return _jl(-xi)
+    _checks.check_finite("se3.jr", "xi", xi)
+    result = _jl_robust(-xi)
+    _checks.check_result_finite("se3.jr", result, xi=xi)
+    return result
 
 
 def jl_inv(xi: Tensor) -> Tensor:
@@ -292,7 +433,10 @@ def jl_inv(xi: Tensor) -> Tensor:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jl_inv", "xi", xi, (6,))
-    return _jl_inv(xi)
+    _checks.check_finite("se3.jl_inv", "xi", xi)
+    result = _jl_inv_robust(xi)
+    _checks.check_result_finite("se3.jl_inv", result, reason=_JL_INV_REASON, xi=xi)
+    return result
 
 
 def jr_inv(xi: Tensor) -> Tensor:
@@ -305,4 +449,7 @@ def jr_inv(xi: Tensor) -> Tensor:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jr_inv", "xi", xi, (6,))
-    return _jl_inv(-xi)
+    _checks.check_finite("se3.jr_inv", "xi", xi)
+    result = _jl_inv_robust(-xi)
+    _checks.check_result_finite("se3.jr_inv", result, reason=_JL_INV_REASON, xi=xi)
+    return result

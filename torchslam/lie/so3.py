@@ -8,9 +8,19 @@ Conventions (kept across torchslam):
 
 All functions take arbitrary leading batch dims, keep dtype/device, are differentiable
 (finite gradients at θ = 0 and near π) and are ``torch.func`` (vmap/jacrev) compatible.
+
+Bad input is rejected at the boundary: shapes, dtypes and broadcasting always (TypeError /
+ValueError naming the function and the argument); NaN/Inf, non-rotations and results that
+overflow although the input is finite when value checks are active (see
+:func:`torchslam.validation`). Finite input never gives NaN: for |ω| beyond 2²⁰ (float64) /
+2¹⁰ (float32) the formulas switch to a unit-axis form that cannot overflow (see
+:class:`_Polar`), with the angle reduced modulo 2π (exact up to the input's resolution).
 """
 
 from __future__ import annotations
+
+import functools
+import math
 
 import torch
 from torch import Tensor
@@ -57,6 +67,7 @@ def hat(omega: Tensor) -> Tensor:
         Skew matrices, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.hat", "omega", omega, (3,))
+    _checks.check_finite("so3.hat", "omega", omega)
     return _hat(omega)
 
 
@@ -70,17 +81,117 @@ def vee(Omega: Tensor) -> Tensor:
         Vectors, shape (..., 3).
     """
     _checks.check_tensor("so3.vee", "Omega", Omega, (3, 3))
+    _checks.check_finite("so3.vee", "Omega", Omega)
     return _vee(Omega)
 
 
 def _vee(Omega: Tensor) -> Tensor:
-    return 0.5 * torch.stack(
+    # ½a − ½b equals ½(a − b) exactly (halving is exact) but cannot overflow for finite input.
+    half = 0.5 * Omega
+    return torch.stack(
         (
-            Omega[..., 2, 1] - Omega[..., 1, 2],
-            Omega[..., 0, 2] - Omega[..., 2, 0],
-            Omega[..., 1, 0] - Omega[..., 0, 1],
+            half[..., 2, 1] - half[..., 1, 2],
+            half[..., 0, 2] - half[..., 2, 0],
+            half[..., 1, 0] - half[..., 0, 1],
         ),
         dim=-1,
+    )
+
+
+# Rotation vectors with θ² above this use the unit-axis form of the formulas (see _polar). The
+# bounds keep the θ-power forms (θ⁵ in the SE(3) Q block, θ⁴·|v|) far from overflow; the
+# θ-power forms stay in use below them so that ordinary input gets exactly the same values.
+_LARGE_ANGLE_SQUARED = {torch.float32: 2.0**20, torch.float64: 2.0**40}
+
+
+class _Polar:
+    """A batch of rotation vectors split for formulas that must not overflow; sync-free.
+
+    On ordinary rows (θ² ≤ _LARGE_ANGLE_SQUARED) ``w`` is ω itself and ``theta2`` its θ², so
+    the θ-power formulas run exactly as before. On large rows (including θ² = Inf, i.e. θ² of a
+    finite ω overflowing) ``w`` is the unit axis u and ``theta2`` is 1 (= |u|²); the formulas
+    then take coefficients from the lazily computed ``theta`` (Inf if |ω| overflows the dtype),
+    ``sin_half``/``cos_half`` (θ/2 reduced modulo π, exact) and their combinations. On ordinary
+    rows those hold harmless values (from ω replaced by ones), so no branch sees 0/0 in the
+    forward or the backward pass, and ``torch.where`` picks the right one per row.
+    """
+
+    def __init__(self, omega: Tensor) -> None:
+        theta2 = (omega * omega).sum(-1)
+        # NaN θ² (NaN input, unchecked) stays on the ordinary branch, which returns NaN.
+        self.large = theta2 > _LARGE_ANGLE_SQUARED[omega.dtype]
+        large = self.large[..., None]
+        om = torch.where(large, omega, 1.0)
+        # |ω| = m·|ω/m| with m = max|ω_i|: no overflow in the squares (torch's norm does not
+        # rescale: vector_norm([1e308] * 3) is Inf).
+        self._m = om.abs().amax(dim=-1)
+        s = om / self._m[..., None]
+        self._n = torch.linalg.vector_norm(s, dim=-1)  # in [1, √3]
+        self.w = torch.where(large, s / self._n[..., None], omega)
+        self.theta2 = torch.where(self.large, 1.0, theta2)
+
+    @functools.cached_property
+    def _quarter(self) -> Tensor:
+        return (0.25 * self._m) * self._n  # θ/4, finite for every finite ω
+
+    @functools.cached_property
+    def theta(self) -> Tensor:
+        return 4.0 * self._quarter  # Inf only when |ω| exceeds the dtype's range
+
+    @functools.cached_property
+    def _half(self) -> Tensor:
+        # θ/2 mod π = 2·fmod(θ/4, fl(π/2)): fmod is exact, and reducing by fl(2π) instead of 2π
+        # moves the angle by less than half an ulp of θ, the input's own resolution.
+        return 2.0 * torch.fmod(self._quarter, math.pi / 2)
+
+    @functools.cached_property
+    def sin_half(self) -> Tensor:
+        return torch.sin(self._half)  # sin(θ/2) up to a common sign with cos_half
+
+    @functools.cached_property
+    def cos_half(self) -> Tensor:
+        return torch.cos(self._half)
+
+    @functools.cached_property
+    def sin_theta(self) -> Tensor:
+        return 2.0 * self.sin_half * self.cos_half
+
+    @functools.cached_property
+    def one_minus_cos(self) -> Tensor:
+        return 2.0 * self.sin_half * self.sin_half  # 1 − cos θ without cancellation
+
+
+def _polar(omega: Tensor) -> _Polar:
+    """Split rotation vectors (..., 3) into ordinary and large rows (see :class:`_Polar`)."""
+    return _Polar(omega)
+
+
+def _rodrigues_coefficients(
+    p: _Polar, a: Tensor | None = None, b: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """(first, second) with Exp(ω) = I + first·[w]× + second·[w]×² (w = ω, or u when large).
+
+    ``a``, ``b`` are the series-safe sinc coefficients at ``p.theta2`` if the caller has them.
+    """
+    if a is None or b is None:
+        a, b = _series.sinc_coefficients(p.theta2)
+    # Large rows: w = u, so first = sin θ and second = 1 − cos θ.
+    return torch.where(p.large, p.sin_theta, a), torch.where(p.large, p.one_minus_cos, b)
+
+
+def _jl_coefficients(p: _Polar, b: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """(first, second) with J_l(ω) = I + first·[w]× + second·[w]×².
+
+    ``b`` is the Rodrigues (1 − cos θ)/θ² at ``p.theta2`` when the caller has it already.
+    """
+    if b is None:
+        _, b = _series.sinc_coefficients(p.theta2)
+    c = _series.jacobian_coefficient_c(p.theta2)
+    # Large rows: first = (1 − cos θ)/θ, second = 1 − sin θ/θ (both bounded; 1/θ = 0 at Inf).
+    inv_theta = 1.0 / p.theta
+    return (
+        torch.where(p.large, p.one_minus_cos * inv_theta, b),
+        torch.where(p.large, 1.0 - p.sin_theta * inv_theta, c),
     )
 
 
@@ -112,15 +223,35 @@ def _skew_quadratic(omega: Tensor, theta2: Tensor, first: Tensor, second: Tensor
 
 
 def _exp(omega: Tensor) -> Tensor:
+    # The θ-power form, for the solver's hot path (finite up to |ω| ≈ 1e154 in float64).
     theta2 = (omega * omega).sum(-1)
     a, b = _series.sinc_coefficients(theta2)
     return _skew_quadratic(omega, theta2, a, b)
+
+
+def _exp_robust(omega: Tensor) -> Tensor:
+    # Bitwise equal to _exp up to |ω| = 2²⁰ (2¹⁰ in float32), a rotation for every finite ω.
+    p = _polar(omega)
+    a, b = _rodrigues_coefficients(p)
+    return _skew_quadratic(p.w, p.theta2, a, b)
+
+
+def _axis_angle_to_quaternion(omega: Tensor) -> Tensor:
+    """Unit quaternion (cos(θ/2), sin(θ/2)·ω/θ) of rotation vectors (..., 3), exact at θ = 0."""
+    p = _polar(omega)
+    # With x = θ/2: sin(x)/x and (1 − cos x)/x² are the Rodrigues coefficients at x².
+    half2 = 0.25 * p.theta2
+    a, b = _series.sinc_coefficients(half2)
+    w = torch.where(p.large, p.cos_half, 1.0 - half2 * b)
+    scale = torch.where(p.large, p.sin_half, 0.5 * a)
+    return torch.cat((w[..., None], scale[..., None] * p.w), dim=-1)
 
 
 def exp(omega: Tensor) -> Tensor:
     """Exponential map so(3) → SO(3), Rodrigues' formula (seed eq. L4.1).
 
     R = I + (sin θ / θ) [ω]× + ((1 − cos θ) / θ²) [ω]×², θ = |ω|, with series branches near 0.
+    Finite for every finite ω (the result is a rotation even for |ω| = 1e300).
 
     Args:
         omega: rotation vectors (axis · angle, radians), shape (..., 3).
@@ -130,7 +261,7 @@ def exp(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.exp", "omega", omega, (3,))
     _checks.check_finite("so3.exp", "omega", omega)
-    return _exp(omega)
+    return _exp_robust(omega)
 
 
 def _matrix_to_quaternion(R: Tensor) -> Tensor:
@@ -197,6 +328,10 @@ def log(R: Tensor) -> Tensor:
     return _log(R)
 
 
+# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
+# public functions and the manifolds use the _robust forms (bitwise equal up to |ω| = 2²⁰).
+
+
 def _jl(omega: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)
     _, b = _series.sinc_coefficients(theta2)
@@ -212,6 +347,37 @@ def _jl_inv(omega: Tensor) -> Tensor:
     return eye - 0.5 * W + d[..., None, None] * (W @ W)
 
 
+def _jl_from_polar(p: _Polar) -> Tensor:
+    first, second = _jl_coefficients(p)
+    return _skew_quadratic(p.w, p.theta2, first, second)
+
+
+def _jl_robust(omega: Tensor) -> Tensor:
+    return _jl_from_polar(_polar(omega))
+
+
+def _jl_inv_from_polar(p: _Polar) -> Tensor:
+    d = _series.inverse_jacobian_coefficient_d(p.theta2)
+    # Large rows (w = u): I − (θ/2)[u]× + (1 − (θ/2)cot(θ/2))[u]×²; it grows like θ and is
+    # singular at θ = 2πk (Inf/NaN there, reported by the public functions).
+    half_theta = 0.5 * p.theta
+    h = torch.where(p.large, half_theta, 0.5)
+    d = torch.where(p.large, 1.0 - half_theta * p.cos_half / p.sin_half, d)
+    W = _hat(p.w)
+    eye = torch.eye(3, dtype=W.dtype, device=W.device)
+    return eye - h[..., None, None] * W + d[..., None, None] * (W @ W)
+
+
+def _jl_inv_robust(omega: Tensor) -> Tensor:
+    return _jl_inv_from_polar(_polar(omega))
+
+
+_JL_INV_SINGULAR = (
+    "J_l is singular at |ω| = 2πk (k ≥ 1) and its inverse grows like |ω|/2, so the inverse "
+    "is not representable here"
+)
+
+
 def jl(omega: Tensor) -> Tensor:
     """Left Jacobian of SO(3), the J of seed eq. L4.3.
 
@@ -225,7 +391,8 @@ def jl(omega: Tensor) -> Tensor:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jl", "omega", omega, (3,))
-    return _jl(omega)
+    _checks.check_finite("so3.jl", "omega", omega)
+    return _jl_robust(omega)
 
 
 def jr(omega: Tensor) -> Tensor:
@@ -238,13 +405,15 @@ def jr(omega: Tensor) -> Tensor:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jr", "omega", omega, (3,))
-    return _jl(-omega)
+    _checks.check_finite("so3.jr", "omega", omega)
+    return _jl_robust(-omega)
 
 
 def jl_inv(omega: Tensor) -> Tensor:
     """Inverse of :func:`jl`: I − ½[ω]× + ((1 − (θ/2)cot(θ/2))/θ²) [ω]×².
 
-    Finite for θ < 2π (in particular at θ = π).
+    Finite for θ < 2π (in particular at θ = π); singular at θ = 2πk, k ≥ 1. When value checks
+    are active a result that is not finite raises ValueError.
 
     Args:
         omega: rotation vectors, shape (..., 3).
@@ -253,7 +422,10 @@ def jl_inv(omega: Tensor) -> Tensor:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jl_inv", "omega", omega, (3,))
-    return _jl_inv(omega)
+    _checks.check_finite("so3.jl_inv", "omega", omega)
+    result = _jl_inv_robust(omega)
+    _checks.check_result_finite("so3.jl_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
+    return result
 
 
 def jr_inv(omega: Tensor) -> Tensor:
@@ -266,19 +438,24 @@ def jr_inv(omega: Tensor) -> Tensor:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jr_inv", "omega", omega, (3,))
-    return _jl_inv(-omega)
+    _checks.check_finite("so3.jr_inv", "omega", omega)
+    result = _jl_inv_robust(-omega)
+    _checks.check_result_finite("so3.jr_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
+    return result
 
 
 def inverse(R: Tensor) -> Tensor:
     """Inverse rotation Rᵀ.
 
     Args:
-        R: rotation matrices, shape (..., 3, 3).
+        R: rotation matrices, shape (..., 3, 3); checked (orthonormal, det +1) when
+            validation is on, since Rᵀ is the inverse of rotations only.
 
     Returns:
         Rᵀ, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.inverse", "R", R, (3, 3))
+    _checks.check_rotation("so3.inverse", "R", R)
     return R.transpose(-1, -2)
 
 
@@ -286,28 +463,35 @@ def act(R: Tensor, points: Tensor) -> Tensor:
     """Rotate points: R p, broadcasting ``points`` (..., 3) against ``R`` (..., 3, 3).
 
     Args:
-        R: rotation matrices, shape (..., 3, 3).
+        R: rotation matrices, shape (..., 3, 3); checked when validation is on.
         points: points, shape (..., 3); leading dims broadcast with those of ``R``.
 
     Returns:
         Rotated points, shape broadcast(R.shape[:-2], points.shape[:-1]) + (3,).
     """
-    _checks.check_tensor("so3.act", "R", R, (3, 3))
-    _checks.check_tensor("so3.act", "points", points, (3,))
-    _checks.check_same_kind("so3.act", R=R, points=points)
-    return (R @ points[..., None]).squeeze(-1)
+    fn = "so3.act"
+    _checks.check_tensor(fn, "R", R, (3, 3))
+    _checks.check_tensor(fn, "points", points, (3,))
+    _checks.check_same_kind(fn, R=R, points=points)
+    _checks.check_broadcast(fn, R=R.shape[:-2], points=points.shape[:-1])
+    _checks.check_rotation(fn, "R", R)
+    _checks.check_finite(fn, "points", points)
+    result = (R @ points[..., None]).squeeze(-1)
+    _checks.check_result_finite(fn, result, R=R, points=points)
+    return result
 
 
 def adjoint(R: Tensor) -> Tensor:
     """Adjoint of SO(3): Ad_R = R, so that R Exp(d) Rᵀ = Exp(R d).
 
     Args:
-        R: rotation matrices, shape (..., 3, 3).
+        R: rotation matrices, shape (..., 3, 3); checked when validation is on.
 
     Returns:
         Adjoint matrices, shape (..., 3, 3) (a copy of ``R``).
     """
     _checks.check_tensor("so3.adjoint", "R", R, (3, 3))
+    _checks.check_rotation("so3.adjoint", "R", R)
     return R.clone()
 
 
@@ -325,6 +509,11 @@ def project(M: Tensor) -> Tensor:
     """
     _checks.check_tensor("so3.project", "M", M, (3, 3))
     _checks.check_finite("so3.project", "M", M)
+    # The nearest rotation does not depend on a positive scale of M: bring matrices with huge
+    # or tiny entries to unit scale first (the SVD loses them otherwise); others are untouched.
+    m = M.detach().abs().amax(dim=(-1, -2))
+    rescale = (m > 0) & ~((m >= 2.0**-64) & (m <= 2.0**64))
+    M = M / torch.where(rescale, m, torch.ones_like(m))[..., None, None]
     U, _, Vh = torch.linalg.svd(M)
     det = torch.linalg.det(U @ Vh)
     fix = torch.ones(*M.shape[:-2], 3, dtype=M.dtype, device=M.device)
