@@ -436,16 +436,16 @@ def _quaternion_log(q: Tensor) -> Tensor:
     """Rotation vector of a unit quaternion, angle in [0, π] (q and −q give the same result)."""
     q = torch.where(q[..., :1] < 0, -q, q)
     w, v = q[..., 0], q[..., 1:]
-    n = torch.linalg.vector_norm(v, dim=-1)
-    # θ = 2 atan2(|v|, w), ω = θ v/|v|. Below θ = π/2 (|v| < w) atan_ratio is exact at |v| = 0;
-    # above, atan2(|v|, w)/|v| is safe (|v| ≥ 1/√2). Double where: each branch sees safe values,
-    # so gradients stay finite at θ = 0 and at θ = π (w = 0, where atan_ratio's series would
-    # see (|v|/w)² = ∞).
-    large = n >= w
-    n_large = torch.where(large, n, torch.ones_like(n))
+    n2 = (v * v).sum(-1)
+    # θ = 2 atan2(|v|, w), ω = θ v/|v|. Below θ = π/2 (|v| < w) atan_ratio_squared is exact at
+    # |v| = 0 and reads |v|² (first and second derivatives finite there); above, atan2(|v|, w)/|v|
+    # is safe (|v| ≥ 1/√2). Double where: each branch sees safe values, so gradients stay
+    # finite at θ = 0 and at θ = π (w = 0, where the series would see (|v|/w)² = ∞).
+    large = n2 >= w * w
+    n_large = torch.sqrt(torch.where(large, n2, torch.ones_like(n2)))
     ratio_large = torch.atan2(n_large, w) / n_large
-    ratio_small = _series.atan_ratio(
-        torch.where(large, torch.zeros_like(n), n), torch.where(large, torch.ones_like(w), w)
+    ratio_small = _series.atan_ratio_squared(
+        torch.where(large, torch.zeros_like(n2), n2), torch.where(large, torch.ones_like(w), w)
     )
     return (2.0 * torch.where(large, ratio_large, ratio_small))[..., None] * v
 

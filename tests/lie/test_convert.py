@@ -304,3 +304,26 @@ def test_validation_false_skips_unit_norm_check():
     with torchslam.validation(False):
         # Documented: quaternion_to_matrix then uses q / |q|.
         assert _max_err(convert.quaternion_to_matrix(q), torch.eye(3, dtype=torch.float64)) == 0
+
+
+def test_quaternion_log_second_derivatives_are_finite_and_exact_at_the_identity():
+    # The angle is read from |v|², never |v| (whose derivative is 0/0 at v = 0): the double
+    # backward of quaternion → rotation vector, and of SO3Quaternion.minus, is finite at the
+    # identity and equals the exact Hessian of the test function.
+    from torchslam import manifold
+
+    omega = torch.tensor([1e-300, 0.0, 0.0], dtype=torch.float64)
+    for f in (
+        lambda x: convert.quaternion_to_axis_angle(convert.axis_angle_to_quaternion(x)),
+        lambda x: manifold.SO3Quaternion().minus(
+            manifold.SO3Quaternion().plus(
+                torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64), x
+            ),
+            torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64),
+        ),
+    ):
+        for x0 in (torch.zeros(3, dtype=torch.float64), omega):
+            # f(x) = x near 0, so ½|f(x)|² has Hessian I.
+            H = torch.autograd.functional.hessian(lambda x, f=f: 0.5 * f(x).square().sum(), x0)
+            assert torch.isfinite(H).all()
+            torch.testing.assert_close(H, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-12)

@@ -117,8 +117,10 @@ def quaternion_to_axis_angle(q: Tensor) -> Tensor:
     _checks.check_unit_quaternion("convert.quaternion_to_axis_angle", "q", q)
     q = _canonical(q)
     w, v = q[..., 0], q[..., 1:]
-    n = torch.linalg.vector_norm(v, dim=-1)
-    return (2.0 * _series.atan_ratio(n, w))[..., None] * v
+    # |v|² rather than |v|: the norm's derivative is 0/0 at v = 0, which a double backward
+    # turns into NaN; atan_ratio_squared has finite first and second derivatives there.
+    n2 = (v * v).sum(-1)
+    return (2.0 * _series.atan_ratio_squared(n2, w))[..., None] * v
 
 
 def axis_angle_to_matrix(omega: Tensor) -> Tensor:
