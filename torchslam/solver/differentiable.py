@@ -432,7 +432,9 @@ def _solve_hessian(
         nonzero = den != 0
         return torch.where(nonzero, num / torch.where(nonzero, den, 1.0), 0.0)
 
-    # Preconditioned conjugate gradients (Hestenes-Stiefel), batched over problems.
+    # Preconditioned conjugate gradients (Hestenes-Stiefel), batched over problems. A problem
+    # whose residual meets the tolerance takes no further step (α = 0), so its w does not
+    # depend on the other problems of the batch: the same gradient alone or in any shard.
     w = (torch.zeros_like(v[0]), torch.zeros_like(v[1]))
     r = v
     z = precondition(r)
@@ -440,10 +442,11 @@ def _solve_hessian(
     rz = _dot(r, z)
     limit = options.tolerance * torch.sqrt(_dot(v, v))
     for _ in range(options.max_iterations):
-        if bool((torch.sqrt(_dot(r, r)) <= limit).all()):
+        active = torch.sqrt(_dot(r, r)) > limit
+        if not bool(active.any()):
             break
         Hp = hessian_product(p)
-        alpha = safe_ratio(rz, _dot(p, Hp))
+        alpha = torch.where(active, safe_ratio(rz, _dot(p, Hp)), 0.0)
         w = axpy(alpha, p, w)
         r = axpy(-alpha, Hp, r)
         z = precondition(r)
