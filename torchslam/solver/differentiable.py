@@ -98,7 +98,7 @@ class ImplicitConfig:
     # by double backward, preconditioned by the Gauss-Newton Schur solve) or "gauss_newton"
     # (the Schur solve with JᵀJ alone: cheaper, exact only for zero-residual problems).
     hessian: Literal["exact", "gauss_newton"] = "exact"
-    # Conjugate gradients stop when ‖H w − v‖ ≤ tolerance · ‖v‖ in every problem.
+    # Conjugate gradients stop in a problem when its ‖H w − v‖ ≤ tolerance · ‖v‖.
     tolerance: float = 1e-10
     # At most this many conjugate-gradient iterations (each one Hessian-vector product).
     max_iterations: int = 100
