@@ -134,7 +134,7 @@ class ImplicitConfig:
     # by double backward, preconditioned by the Gauss-Newton Schur solve) or "gauss_newton"
     # (the Schur solve with JᵀJ alone: cheaper, exact only for zero-residual problems).
     hessian: Literal["exact", "gauss_newton"] = "exact"
-    # Conjugate gradients stop when ‖H w − v‖ ≤ tolerance · ‖v‖ in every problem.
+    # Conjugate gradients stop in a problem when its ‖H w − v‖ ≤ tolerance · ‖v‖.
     tolerance: float = 1e-10
     # At most this many conjugate-gradient iterations (each one Hessian-vector product).
     max_iterations: int = 100
@@ -496,7 +496,9 @@ def _solve_hessian(
         nonzero = den != 0
         return torch.where(nonzero, num / torch.where(nonzero, den, 1.0), 0.0)
 
-    # Preconditioned conjugate gradients (Hestenes-Stiefel), batched over problems.
+    # Preconditioned conjugate gradients (Hestenes-Stiefel), batched over problems. A problem
+    # whose residual meets the tolerance takes no further step (α = 0), so its w does not
+    # depend on the other problems of the batch: the same gradient alone or in any shard.
     w = (torch.zeros_like(v[0]), torch.zeros_like(v[1]))
     r = v
     z = precondition(r)
@@ -504,10 +506,11 @@ def _solve_hessian(
     rz = _dot(r, z)
     limit = options.tolerance * torch.sqrt(_dot(v, v))
     for _ in range(options.max_iterations):
-        if bool((torch.sqrt(_dot(r, r)) <= limit).all()):
+        active = torch.sqrt(_dot(r, r)) > limit
+        if not bool(active.any()):
             break
         Hp = hessian_product(p)
-        alpha = safe_ratio(rz, _dot(p, Hp))
+        alpha = torch.where(active, safe_ratio(rz, _dot(p, Hp)), 0.0)
         w = axpy(alpha, p, w)
         r = axpy(-alpha, Hp, r)
         z = precondition(r)
