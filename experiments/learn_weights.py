@@ -146,8 +146,9 @@ def add_features(scenes: Scenes, cauchy_scale: float) -> None:
     s = scenes.scene
     B, E = s.valid.shape
     T = se3._exp(result.pose_tangent)
-    T_e = T[torch.arange(B)[:, None], s.pose_index]
-    X_e = result.points[torch.arange(B)[:, None], s.point_index]
+    rows = torch.arange(B, device=s.valid.device)[:, None]
+    T_e = T[rows, s.pose_index]
+    X_e = result.points[rows, s.point_index]
     residual = (scenes.observations - se3._act(T_e, X_e)).norm(dim=-1)
     valid = s.valid
     log_r = torch.log(residual.clamp_min(1e-9))
@@ -156,7 +157,7 @@ def add_features(scenes: Scenes, cauchy_scale: float) -> None:
     log_range = torch.log(scenes.observations.norm(dim=-1).clamp_min(1e-6))
 
     def group_mean(index: Tensor, size: int) -> Tensor:
-        flat = (torch.arange(B)[:, None] * size + index).reshape(-1)
+        flat = (rows * size + index).reshape(-1)
         total = relative.new_zeros(B * size).index_add_(0, flat, relative.reshape(-1))
         count = relative.new_zeros(B * size).index_add_(0, flat, valid.double().reshape(-1))
         mean = total / count.clamp_min(1)
@@ -344,7 +345,7 @@ def compare_backward_modes() -> dict:
 def residual_norms(scenes: Scenes, pose_tangent: Tensor, points: Tensor) -> Tensor:
     """‖r_e‖ = ‖X_ij − T_i0 X_j‖ at an estimate, (B, E)."""
     s = scenes.scene
-    b = torch.arange(s.valid.shape[0])[:, None]
+    b = torch.arange(s.valid.shape[0], device=s.valid.device)[:, None]
     T_e = se3._exp(pose_tangent)[b, s.pose_index]
     return (scenes.observations - se3._act(T_e, points[b, s.point_index])).norm(dim=-1)
 
