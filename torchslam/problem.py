@@ -270,15 +270,19 @@ class PointMapProblem(nn.Module):
                 f"{fn}: a problem needs at least one pose (m ≥ 1); 'poses' has shape "
                 f"{tuple(poses.shape)}"
             )
-        pose_index = _index_tensor(fn, "pose_index", pose_index, (B, E), observations.device)
-        point_index = _index_tensor(fn, "point_index", point_index, (B, E), observations.device)
-        valid = _mask(fn, "valid", valid, (B, E), observations.device, default=True)
+        edges = f" ((B, E) of 'observations' {tuple(observations.shape)})"
+        device = observations.device
+        pose_index = _index_tensor(fn, "pose_index", pose_index, (B, E), device, edges)
+        point_index = _index_tensor(fn, "point_index", point_index, (B, E), device, edges)
+        valid = _mask(fn, "valid", valid, (B, E), device, True, edges)
         fixed_poses_given = fixed_poses is not None
-        fixed_poses = _mask(fn, "fixed_poses", fixed_poses, (B, m), poses.device, default=False)
+        source = f" ((B, m) of 'poses' {tuple(poses.shape)})"
+        fixed_poses = _mask(fn, "fixed_poses", fixed_poses, (B, m), poses.device, False, source)
         if not fixed_poses_given:
             fixed_poses = fixed_poses.clone()
             fixed_poses[:, 0] = True
-        fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False)
+        source = f" ((B, n) of 'points' {tuple(points.shape)})"
+        fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False, source)
         losses.check_loss(fn, loss)
         scalar_weights, information = _split_weights(fn, weights, B, E, observations)
         terms = _bind_terms(fn, terms, B, m, observations)
@@ -617,24 +621,30 @@ def _check_batch(fn: str, B: int, **tensors: Tensor) -> None:
             )
 
 
-def _index_tensor(fn: str, name: str, x: object, shape: tuple, device) -> Tensor:
+def _index_tensor(fn: str, name: str, x: object, shape: tuple, device, source: str = "") -> Tensor:
     if not isinstance(x, Tensor):
         raise TypeError(f"{fn}: argument '{name}' must be a torch.Tensor, got {type(x).__name__}")
     if x.dtype.is_floating_point or x.dtype.is_complex or x.dtype == torch.bool:
         raise TypeError(f"{fn}: argument '{name}' must be an integer tensor, got {x.dtype}")
     if tuple(x.shape) != tuple(shape):
-        raise ValueError(f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}")
+        raise ValueError(
+            f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}{source}"
+        )
     return x.to(device=device, dtype=torch.long)
 
 
-def _mask(fn: str, name: str, x: object, shape: tuple, device, default: bool) -> Tensor:
+def _mask(
+    fn: str, name: str, x: object, shape: tuple, device, default: bool, source: str = ""
+) -> Tensor:
     if x is None:
         return torch.full(shape, default, dtype=torch.bool, device=device)
     if not isinstance(x, Tensor) or x.dtype != torch.bool:
         got = x.dtype if isinstance(x, Tensor) else type(x).__name__
         raise TypeError(f"{fn}: argument '{name}' must be a bool tensor, got {got}")
     if tuple(x.shape) != tuple(shape):
-        raise ValueError(f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}")
+        raise ValueError(
+            f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}{source}"
+        )
     return x.to(device)
 
 

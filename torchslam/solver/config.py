@@ -96,6 +96,11 @@ class SolverConfig:
         ):
             value = check_number("SolverConfig", name, getattr(self, name), low, closed, infinite)
             object.__setattr__(self, name, value)
+        if self.linear_solver == "dense" and self.reduced_solver == "sparse":
+            raise ValueError(
+                "SolverConfig: 'reduced_solver' = 'sparse' factors the reduced pose system of "
+                "linear_solver='schur'; with linear_solver='dense' leave it 'auto' or 'dense'"
+            )
         if self.min_lambda > self.max_lambda:
             raise ValueError(
                 f"SolverConfig: 'min_lambda' ({self.min_lambda!r}) must not exceed 'max_lambda' "
@@ -130,7 +135,9 @@ def check_number(
     """A real option > ``low`` (≥ when ``closed``), finite unless ``infinite`` allows +inf;
     NaN and non-numbers are refused (ValueError). Returns it as a float."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{owner}: '{name}' must be a number, got {type(value).__name__} {value!r}")
+        raise ValueError(
+            f"{owner}: '{name}' must be a number, got {type(value).__name__} {value!r}"
+        )
     try:
         value = float(value)
     except OverflowError:  # an int beyond the float range
