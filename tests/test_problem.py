@@ -591,9 +591,23 @@ def test_mixed_dtype_weights_and_wrong_dtypes_are_rejected():
         ("observations", torch.zeros(2, 12, 2, dtype=F64), "'observations' must have shape"),
         ("points", torch.zeros(2, 4, 4, dtype=F64), "'points' must have shape"),
         ("poses", torch.zeros(2, 3, 3, 4, dtype=F64), "'poses' must have shape"),
-        ("poses", torch.eye(4, dtype=F64).expand(3, 4, 4), r"'poses' must have shape"),
-        ("poses", torch.eye(4, dtype=F64).expand(1, 2, 3, 4, 4), r"poses \(B, m, 4, 4\)"),
-        ("observations", torch.zeros(2, 2, 12, 3, dtype=F64), r"observations \(B, E, 3\)"),
+        (
+            "poses",
+            torch.eye(4, dtype=F64).expand(3, 4, 4),
+            r"'poses' must have shape \(B, m, 4, 4\), got \(3, 4, 4\); add a leading batch dim "
+            r"with poses\[None\]",
+        ),
+        (
+            "poses",
+            torch.eye(4, dtype=F64).expand(1, 2, 3, 4, 4),
+            r"poses' must have shape \(B, m, 4, 4\)",
+        ),
+        (
+            "observations",
+            torch.zeros(2, 2, 12, 3, dtype=F64),
+            r"observations' must have shape \(B, E, 3\)",
+        ),
+        ("points", torch.zeros(4, 3, dtype=F64), r"\(B, n, 3\), got \(4, 3\); add a leading batch"),
     ],
 )
 def test_wrong_shapes_name_the_argument(name, value, pattern):
@@ -616,11 +630,11 @@ def test_wrong_mask_and_weight_shapes_name_the_argument():
 def test_negative_weight_names_problem_and_observation():
     weights = torch.ones(2, 12, dtype=F64)
     weights[1, 4] = -0.5
-    with pytest.raises(ValueError, match="'weights' must be ≥ 0") as info:
+    with pytest.raises(ValueError, match="'weights' must be finite and ≥ 0") as info:
         PointMapProblem(**_bad(), weights=weights)
     assert "problem 1, observation 4 has -0.5" in str(info.value)
     weights[1, 4] = float("nan")
-    with pytest.raises(ValueError, match=r"'weights'.*non-finite"):
+    with pytest.raises(ValueError, match=r"'weights' must be finite and ≥ 0.*has nan"):
         PointMapProblem(**_bad(), weights=weights)
 
 

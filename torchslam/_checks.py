@@ -287,3 +287,68 @@ def check_result_finite(
         f"{fn}: the result is not finite ({result.dtype}) although the arguments are finite: "
         f"argument(s) {described}: {why}"
     )
+
+
+# ------------------------------------------------------------------------------------------
+# Named batched shapes and short descriptions of wrong values (problem, terms, solver).
+
+
+def describe(value: object) -> str:
+    """A short description of a value for an error message: its type, plus the value itself
+    for strings and numbers (``str 'lm'``, ``float 0.5``), the class name for classes."""
+    if isinstance(value, type):
+        return f"the class {value.__name__}"
+    if isinstance(value, Tensor):
+        return f"Tensor of shape {tuple(value.shape)} and dtype {value.dtype}"
+    if isinstance(value, (str, int, float, bool)):
+        return f"{type(value).__name__} {value!r}"
+    return type(value).__name__
+
+
+def check_batched(
+    fn: str,
+    name: str,
+    x: object,
+    dims: Sequence[str],
+    trailing: Sequence[int] = (),
+    sizes: Sequence[int | None] | None = None,
+    *,
+    floating: bool = True,
+    against: str = "",
+) -> Tensor:
+    """Check that ``x`` is a tensor of exactly the shape ``(*dims, *trailing)``.
+
+    Args:
+        fn, name: function and argument names for the message.
+        x: the value to check.
+        dims: names of the leading dims, e.g. ``("B", "m")`` (shown as ``(B, m, 6)``).
+        trailing: required trailing sizes, e.g. ``(6,)``.
+        sizes: required sizes of the named dims (None: any), e.g. ``(B, m)`` of the data.
+        floating: require float32 or float64.
+        against: what the sizes come from, for the message (e.g. ``"'data'"``).
+
+    A tensor missing only the leading batch dim gets the hint ``add a leading batch dim with
+    name[None]``. Returns ``x`` unchanged.
+    """
+    check_tensor(fn, name, x, floating=floating)
+    assert isinstance(x, Tensor)
+    expected = _shape_str(list(dims) + list(trailing))
+    got = tuple(x.shape)
+    rank = len(dims) + len(trailing)
+    nt = len(trailing)
+    trailing_ok = x.dim() >= nt and tuple(got[x.dim() - nt :]) == tuple(trailing)
+    if x.dim() != rank or not trailing_ok:
+        hint = ""
+        if x.dim() == rank - 1 and trailing_ok and len(dims) > 1:
+            hint = f"; add a leading batch dim with {name}[None]"
+        raise ValueError(f"{fn}: argument '{name}' must have shape {expected}, got {got}{hint}")
+    if sizes is not None:
+        want = [s if s is not None else got[k] for k, s in enumerate(sizes)]
+        want += list(got[len(sizes) : len(dims)]) + list(trailing)
+        if tuple(want) != got:
+            source = f" to match {against}" if against else ""
+            raise ValueError(
+                f"{fn}: argument '{name}' must have shape {expected} = {_shape_str(want)}"
+                f"{source}, got {got}"
+            )
+    return x

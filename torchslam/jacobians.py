@@ -29,6 +29,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from torchslam import _checks
 from torchslam.lie import se3, so3
 
 __all__ = [
@@ -74,6 +75,11 @@ def analytic_blocks(R: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
         (J_r_xi, J_r_point): ∂r/∂δ = [R [X]× | −R], shape (..., 3, 6), and ∂r/∂X = −R,
         shape (..., 3, 3).
     """
+    fn = "jacobians.analytic_blocks"
+    _checks.check_tensor(fn, "R", R, (3, 3))
+    _checks.check_tensor(fn, "points", points, (3,))
+    _checks.check_same_kind(fn, R=R, points=points)
+    _check_lead(fn, R=R.shape[:-2], points=points.shape[:-1])
     J_r_point = -R
     J_r_xi = torch.cat((R @ so3._hat(points), J_r_point), dim=-1)
     return J_r_xi, J_r_point
@@ -92,10 +98,14 @@ def jacrev_blocks(
     Returns:
         (J_r_xi (..., 3, 6), J_r_point (..., 3, 3)).
     """
+    fn = "jacobians.jacrev_blocks"
+    _check_observation_args(fn, pose_tangent, points, observations)
     batch = points.shape[:-1]
     xi = pose_tangent.reshape(-1, 6)
     X = points.reshape(-1, 3)
     obs = observations.reshape(-1, 3)
+    if xi.shape[0] == 0:  # vmap cannot map over zero rows (e.g. a pose graph without points)
+        return xi.new_zeros(*batch, 3, 6), xi.new_zeros(*batch, 3, 3)
     delta = torch.zeros_like(xi)
     jac = torch.func.jacrev(observation_residual, argnums=(1, 2))
     J_xi, J_point = torch.func.vmap(jac)(xi, delta, X, obs)
@@ -112,6 +122,10 @@ def central_difference_blocks(
     Returns:
         (J_r_xi (..., 3, 6), J_r_point (..., 3, 3)).
     """
+    fn = "jacobians.central_difference_blocks"
+    _check_observation_args(fn, pose_tangent, points, observations)
+    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not (0 < eps < 1):
+        raise ValueError(f"{fn}: 'eps' must be a number in (0, 1), got {eps!r}")
     delta0 = torch.zeros_like(pose_tangent)
 
     def columns(f: Callable[[Tensor], Tensor], base: Tensor) -> Tensor:
@@ -148,7 +162,28 @@ def dense_jacobian(
     Raises:
         ValueError: above DENSE_JACOBIAN_MAX_ENTRIES entries.
     """
+    fn = "jacobians.dense_jacobian"
+    for name, size in (("num_poses", num_poses), ("num_points", num_points)):
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise ValueError(f"{fn}: '{name}' must be an int ≥ 0, got {size!r}")
+    for name, index in (("pose_index", pose_index), ("point_index", point_index)):
+        if not isinstance(index, Tensor):
+            raise TypeError(f"{fn}: '{name}' must be a torch.Tensor, got {_checks.describe(index)}")
+        if index.dtype.is_floating_point or index.dtype.is_complex or index.dtype == torch.bool:
+            raise TypeError(f"{fn}: '{name}' must be an integer tensor, got {index.dtype}")
+        if index.dim() != 2:
+            raise ValueError(f"{fn}: '{name}' must have shape (B, E), got {tuple(index.shape)}")
+    if pose_index.shape != point_index.shape:
+        raise ValueError(
+            f"{fn}: 'pose_index' {tuple(pose_index.shape)} and 'point_index' "
+            f"{tuple(point_index.shape)} must have the same shape (B, E)"
+        )
     B, E = pose_index.shape
+    _checks.check_batched(fn, "J_r_xi", J_r_xi, ("B", "E"), (3, 6), (B, E), against="the indices")
+    _checks.check_batched(
+        fn, "J_r_point", J_r_point, ("B", "E"), (3, 3), (B, E), against="the indices"
+    )
+    _checks.check_same_kind(fn, J_r_xi=J_r_xi, J_r_point=J_r_point)
     cols = 6 * num_poses + 3 * num_points
     if B * 3 * E * cols > DENSE_JACOBIAN_MAX_ENTRIES:
         raise ValueError(
@@ -157,6 +192,20 @@ def dense_jacobian(
             "(torchslam.jacobians.DENSE_JACOBIAN_MAX_ENTRIES); it is meant for small problems "
             "and debugging — the solver uses the per-observation blocks instead"
         )
+    if _checks.value_checks_active():
+        for name, index, size in (
+            ("pose_index", pose_index, num_poses),
+            ("point_index", point_index, num_points),
+        ):
+            bad = (index < 0) | (index >= size)
+            if bool(bad.any()):
+                b, e = (int(i) for i in bad.nonzero()[0])
+                raise ValueError(
+                    f"{fn}: '{name}' out of range [0, {size}): entry ({b}, {e}) is "
+                    f"{int(index[b, e])}"
+                )
+    pose_index = pose_index.long()
+    point_index = point_index.long()
     J = J_r_xi.new_zeros(B, E, 3, cols)
     arange6 = torch.arange(6, device=J.device)
     arange3 = torch.arange(3, device=J.device)
@@ -165,3 +214,30 @@ def dense_jacobian(
     J.scatter_(-1, pose_cols[..., None, :].expand(B, E, 3, 6), J_r_xi)
     J.scatter_(-1, point_cols[..., None, :].expand(B, E, 3, 3), J_r_point)
     return J.reshape(B, 3 * E, cols)
+
+
+def _check_lead(fn: str, **shapes: torch.Size) -> None:
+    """The named arguments' leading (per-observation) shapes must agree."""
+    items = list(shapes.items())
+    name0, lead0 = items[0]
+    for name, lead in items[1:]:
+        if tuple(lead) != tuple(lead0):
+            raise ValueError(
+                f"{fn}: '{name0}' and '{name}' must have the same leading shape, got "
+                f"{tuple(lead0)} and {tuple(lead)}"
+            )
+
+
+def _check_observation_args(
+    fn: str, pose_tangent: object, points: object, observations: object
+) -> None:
+    _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,))
+    _checks.check_tensor(fn, "points", points, (3,))
+    _checks.check_tensor(fn, "observations", observations, (3,))
+    _checks.check_same_kind(fn, pose_tangent=pose_tangent, points=points, observations=observations)
+    _check_lead(
+        fn,
+        pose_tangent=pose_tangent.shape[:-1],
+        points=points.shape[:-1],
+        observations=observations.shape[:-1],
+    )

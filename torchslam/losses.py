@@ -22,6 +22,7 @@ from __future__ import annotations
 import abc
 import copy
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -34,6 +35,7 @@ __all__ = [
     "RobustLoss",
     "TrivialLoss",
     "TukeyLoss",
+    "check_loss",
     "tensor_attributes",
     "triggs_correction",
     "with_tensor_attributes",
@@ -61,6 +63,25 @@ def with_tensor_attributes(loss: object, values: dict[str, Tensor]) -> object:
     for name, value in values.items():
         setattr(new, name, value)
     return new
+
+
+def check_loss(fn: str, loss: object, name: str = "loss") -> None:
+    """Reject anything but None or a :class:`RobustLoss` instance (TypeError naming ``fn``
+    and the argument): a string, a loss class instead of an instance, a number."""
+    if loss is None or isinstance(loss, RobustLoss):
+        return
+    if isinstance(loss, type) and issubclass(loss, RobustLoss):
+        scaled = issubclass(loss, _ScaledKernel)
+        example = f"{loss.__name__}(0.05)" if scaled else f"{loss.__name__}()"
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a RobustLoss instance, got the class "
+            f"{loss.__name__} itself; create one, e.g. ts.{example}"
+        )
+    shown = f" {loss!r}" if isinstance(loss, (str, int, float)) else ""
+    raise TypeError(
+        f"{fn}: argument '{name}' must be a RobustLoss instance such as ts.HuberLoss(0.05) "
+        f"(or None for least squares), got {type(loss).__name__}{shown}"
+    )
 
 
 def _check_s(fn: str, s: object) -> Tensor:
@@ -117,7 +138,7 @@ class _ScaledKernel(RobustLoss):
 
     def __init__(self, scale: float | Tensor) -> None:
         owner = type(self).__name__
-        if isinstance(scale, bool) or not isinstance(scale, (int, float, Tensor)):
+        if isinstance(scale, bool) or not isinstance(scale, (numbers.Real, Tensor)):
             raise TypeError(
                 f"{owner}: argument 'scale' must be a positive float or a float tensor, "
                 f"got {type(scale).__name__}"
@@ -131,12 +152,16 @@ class _ScaledKernel(RobustLoss):
                     f"{owner}: argument 'scale' must be positive and finite; at index {idx} "
                     f"it is {float(scale.detach()[idx])!r}"
                 )
-        elif not (math.isfinite(scale) and scale > 0):
-            raise ValueError(
-                f"{owner}: argument 'scale' must be positive and finite, got {scale!r}"
-            )
         else:
-            scale = float(scale)
+            try:
+                value = float(scale)
+            except OverflowError:  # an int beyond the float range
+                value = math.inf
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(
+                    f"{owner}: argument 'scale' must be positive and finite, got {scale!r}"
+                )
+            scale = value
         self._scale = scale
 
     @property
@@ -152,11 +177,14 @@ class _ScaledKernel(RobustLoss):
     def _evaluate(self, fn: str, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return self._evaluate_scaled(s, self._aligned_scale(fn, s))
 
-    def _aligned_scale(self, fn: str, s: Tensor) -> float | Tensor:
-        """The scale with trailing singleton dims so that its dims align with s's leading dims."""
+    def _aligned_scale(self, fn: str, s: Tensor) -> Tensor:
+        """The scale as a tensor of s's dtype, with trailing singleton dims so that its dims
+        align with s's leading dims, clamped to the dtype's positive normal range (a float
+        scale of 1e-200 is the smallest float32 one in a float32 evaluation)."""
+        info = torch.finfo(s.dtype)
         scale = self._scale
         if not isinstance(scale, Tensor):
-            return scale
+            return s.new_full((), min(max(scale, info.tiny), info.max))
         _checks.check_same_kind(fn, s=s, scale=scale)
         if scale.dim() > s.dim() or any(
             a != b and a != 1 and b != 1 for a, b in zip(scale.shape, s.shape, strict=False)
@@ -165,12 +193,13 @@ class _ScaledKernel(RobustLoss):
                 f"{fn}: the scale of shape {tuple(scale.shape)} must match the leading dims of "
                 f"'s' (shape {tuple(s.shape)}), e.g. scale (B,) for s (B, E)"
             )
+        scale = scale.clamp(info.tiny, info.max)
         return scale.reshape(*scale.shape, *([1] * (s.dim() - scale.dim())))
 
     @abc.abstractmethod
-    def _evaluate_scaled(
-        self, s: Tensor, scale: float | Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]: ...
+    def _evaluate_scaled(self, s: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(ρ, ρ', ρ'') from s and the aligned scale tensor; finite for every finite s ≥ 0
+        and scale in the dtype's positive normal range."""
 
 
 class HuberLoss(_ScaledKernel):
@@ -184,16 +213,17 @@ class HuberLoss(_ScaledKernel):
             leading dims of s, e.g. (B,) for s of shape (B, E)).
     """
 
-    def _evaluate_scaled(self, s: Tensor, scale: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        b = scale * scale
-        outlier = s > b
-        # Double where: the outlier branch sees s ≥ a² > 0 everywhere, so √s and 1/s are safe.
-        s_safe = torch.where(outlier, s, b)
-        root = torch.sqrt(s_safe)
-        rho1_out = scale / root
-        rho = torch.where(outlier, 2.0 * scale * root - b, s)
-        rho1 = torch.where(outlier, rho1_out, torch.ones_like(rho1_out))
-        rho2 = torch.where(outlier, -rho1_out / (2.0 * s_safe), torch.zeros_like(rho1_out))
+    def _evaluate_scaled(self, s: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        outlier = _beyond_knee(s, scale)
+        # Double where: the outlier branch sees s > a² > 0 and the scale itself, the inlier
+        # positions a harmless (1, 1); ρ = a(2√s − a) ≤ s never overflows (a² alone may).
+        s_out = torch.where(outlier, s, 1.0)
+        a_out = torch.where(outlier, scale, 1.0)
+        root = torch.sqrt(s_out)
+        rho1_out = a_out / root
+        rho = torch.where(outlier, a_out * (2.0 * root - a_out), s)
+        rho1 = torch.where(outlier, rho1_out, 1.0)
+        rho2 = torch.where(outlier, _saturate(-0.5 * rho1_out / s_out), 0.0)
         return rho, rho1, rho2
 
 
@@ -207,12 +237,37 @@ class CauchyLoss(_ScaledKernel):
             leading dims of s, e.g. (B,) for s of shape (B, E)).
     """
 
-    def _evaluate_scaled(self, s: Tensor, scale: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        b = scale * scale
-        ratio = s / b
-        rho = b * torch.log1p(ratio)
-        rho1 = 1.0 / (1.0 + ratio)
-        rho2 = -(rho1 * rho1) / b
+    def _evaluate_scaled(self, s: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        outer = _beyond_knee(s, scale)
+        # Inside (t = s/a² ≤ 1): ρ = s·log1p(t)/t, no a² (it overflows for a ≳ 1e154).
+        s_in = torch.where(outer, 0.0, s)
+        a_in = torch.where(outer, 1.0, scale)
+        t_in = s_in / a_in / a_in
+        rho1_in = 1.0 / (1.0 + t_in)
+        rho_in = s_in * _log1p_ratio(t_in)
+        # Outside (s > a² > 0): ρ' = u/(1 + u) with u = a²/s < 1, ρ = a·(a·log(1 + t)); for
+        # t > 1e30 log(1 + t) = log s − 2 log a (the dropped log1p(u) < 1e-30 is far below
+        # round-off), so that neither t nor a derivative ∂t/∂a ~ t/a can overflow.
+        s_out = torch.where(outer, s, 2.0)
+        a_out = torch.where(outer, scale, 1.0)
+        u = a_out / s_out * a_out
+        with torch.no_grad():
+            far = s_out.detach() / a_out.detach() > 1e30 * a_out.detach()
+        s_near = torch.where(far, 2.0, s_out)
+        a_near = torch.where(far, 1.0, a_out)
+        s_far = torch.where(far, s_out, 2.0)
+        a_far = torch.where(far, a_out, 1.0)
+        log_t = torch.where(
+            far,
+            torch.log(s_far) - 2.0 * torch.log(a_far),
+            torch.log1p(s_near / a_near / a_near),
+        )
+        rho_out = a_out * (a_out * log_t)
+        rho1_out = u / (1.0 + u)
+        rho = torch.where(outer, rho_out, rho_in)
+        rho1 = torch.where(outer, rho1_out, rho1_in)
+        ratio = torch.where(outer, rho1_out / a_out, rho1_in / a_in)
+        rho2 = _saturate(-(ratio * ratio))
         return rho, rho1, rho2
 
 
@@ -230,16 +285,43 @@ class TukeyLoss(_ScaledKernel):
             leading dims of s, e.g. (B,) for s of shape (B, E)).
     """
 
-    def _evaluate_scaled(self, s: Tensor, scale: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        b = scale * scale
-        inlier = s <= b
-        # v = 1 − s/a² inside, 0 outside: the outlier values (a²/3, 0, 0) follow from it.
-        v = 1.0 - s / b
-        v = torch.where(inlier, v, torch.zeros_like(v))
-        rho = (b / 3.0) * (1.0 - v * v * v)
-        rho1 = v * v
-        rho2 = (-2.0 / b) * v
+    def _evaluate_scaled(self, s: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        outlier = _beyond_knee(s, scale)
+        # Inside, with v = 1 − s/a²: a²/3 (1 − v³) = s (1 + v + v²)/3 (no a², which over- or
+        # underflows for extreme scales); outside (a²/3, 0, 0) with a² < s finite.
+        s_in = torch.where(outlier, 0.0, s)
+        a_in = torch.where(outlier, 1.0, scale)
+        v = 1.0 - s_in / a_in / a_in
+        a_out = torch.where(outlier, scale, 1.0)
+        rho = torch.where(outlier, a_out * a_out / 3.0, s_in * ((1.0 + v + v * v) / 3.0))
+        rho1 = torch.where(outlier, 0.0, v * v)
+        rho2 = torch.where(outlier, 0.0, _saturate(-2.0 * (v / a_in / a_in)))
         return rho, rho1, rho2
+
+
+def _beyond_knee(s: Tensor, scale: Tensor) -> Tensor:
+    """s > a² without forming a² (it over- or underflows for extreme scales), as a mask."""
+    with torch.no_grad():
+        return s.detach() / scale.detach() > scale.detach()
+
+
+def _saturate(x: Tensor) -> Tensor:
+    """x clamped to the finite range of its dtype: ρ'' of an extreme scale (|ρ''| ~ 1/a²)
+    may exceed it; the largest finite value is the honest representable answer."""
+    big = torch.finfo(x.dtype).max
+    return x.clamp(min=-big, max=big)
+
+
+def _log1p_ratio(t: Tensor) -> Tensor:
+    """log(1 + t)/t for t ∈ [0, 1] (1 at t = 0), smooth with finite derivatives at 0: a
+    Taylor series below t = 0.01 (truncation error < t⁸/9 ≤ 2e-17), log1p(t)/t above."""
+    small = t < 0.01
+    t_small = torch.where(small, t, 0.0)
+    t_large = torch.where(small, 1.0, t)
+    series = torch.zeros_like(t_small)
+    for k in range(7, -1, -1):  # Σ_k (−t)^k / (k + 1), by Horner
+        series = 1.0 / (k + 1) - t_small * series
+    return torch.where(small, series, torch.log1p(t_large) / t_large)
 
 
 def triggs_correction(s: Tensor, rho1: Tensor, rho2: Tensor) -> tuple[Tensor, Tensor]:

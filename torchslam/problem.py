@@ -80,6 +80,61 @@ class PointMapData:
     # Extra pose terms of the objective (:mod:`torchslam.terms`), bound to batch B.
     terms: tuple[Term, ...] = ()
 
+    def __post_init__(self) -> None:
+        """Check types and shapes (free: no host sync); point padding indices at row 0.
+
+        Padding slots (``valid`` False) may hold anything (NaN, Inf, out-of-range indices).
+        Their indices are replaced by 0 here; their observations, weights and information are
+        kept as given and replaced on every use (:meth:`masked_observations`, …, by
+        ``torch.where``, so no NaN reaches a value or a gradient, and a graph built from
+        the given tensors can be differentiated more than once).
+        """
+        fn = "PointMapData"
+        set_ = functools.partial(object.__setattr__, self)
+        valid = self.valid
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.dim() != 2:
+            raise TypeError(
+                f"{fn}: field 'valid' must be a bool tensor of shape (B, E), got "
+                f"{_checks.describe(valid)}"
+            )
+        B, E = valid.shape
+        for name in ("pose_index", "point_index"):
+            index = _index_tensor(fn, name, getattr(self, name), (B, E), valid.device)
+            set_(name, torch.where(valid, index, 0))
+        obs = _checks.check_batched(fn, "observations", self.observations, ("B", "E"), (3,), (B, E))
+        if obs.device != valid.device:
+            raise ValueError(
+                f"{fn}: 'observations' is on {obs.device} but 'valid' is on {valid.device}"
+            )
+        if self.weights is not None and self.information is not None:
+            raise ValueError(f"{fn}: give 'weights' or 'information', not both")
+        if self.weights is not None:
+            w = _checks.check_batched(fn, "weights", self.weights, ("B", "E"), (), (B, E))
+            _checks.check_same_kind(fn, observations=obs, weights=w)
+        if self.information is not None:
+            info = _checks.check_batched(
+                fn, "information", self.information, ("B", "E"), (3, 3), (B, E)
+            )
+            _checks.check_same_kind(fn, observations=obs, information=info)
+        for name in ("fixed_poses", "fixed_points"):
+            mask = getattr(self, name)
+            if not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.dim() != 2:
+                raise TypeError(
+                    f"{fn}: field '{name}' must be a bool tensor of shape "
+                    f"(B, {'m' if name == 'fixed_poses' else 'n'}), got {_checks.describe(mask)}"
+                )
+            if mask.shape[0] != B or mask.device != valid.device:
+                raise ValueError(
+                    f"{fn}: field '{name}' has shape {tuple(mask.shape)} on {mask.device}; "
+                    f"expected batch size B = {B} on {valid.device}"
+                )
+        losses.check_loss(fn, self.loss)
+        if not isinstance(self.terms, tuple) or not all(isinstance(t, Term) for t in self.terms):
+            raise TypeError(
+                f"{fn}: field 'terms' must be a tuple of bound torchslam.Term objects, got "
+                f"{_checks.describe(self.terms)}"
+            )
+
     @property
     def num_poses(self) -> int:
         return self.fixed_poses.shape[-1]
@@ -102,6 +157,23 @@ class PointMapData:
     def num_points(self) -> int:
         return self.fixed_points.shape[-1]
 
+    def masked_observations(self) -> Tensor:
+        """Observations (B, E, 3) with 0 on the padding (whatever it holds)."""
+        return torch.where(self.valid[..., None], self.observations, 0.0)
+
+    def masked_weights(self) -> Tensor | None:
+        """Scalar weights (B, E) with 1 on the padding, or None."""
+        if self.weights is None:
+            return None
+        return torch.where(self.valid, self.weights, 1.0)
+
+    def masked_information(self) -> Tensor | None:
+        """Information matrices (B, E, 3, 3) with I on the padding, or None."""
+        if self.information is None:
+            return None
+        eye = torch.eye(3, dtype=self.information.dtype, device=self.information.device)
+        return torch.where(self.valid[..., None, None], self.information, eye)
+
     def whiten(self, vectors: Tensor) -> Tensor:
         """Apply the square root of the information, Lᵀ v with Ω = L Lᵀ; (B, E, 3, ...) → same.
 
@@ -110,11 +182,11 @@ class PointMapData:
         column = vectors.dim() == 3
         v = vectors[..., None] if column else vectors
         if self.information is not None:
-            L = torch.linalg.cholesky(self.information)
+            L = torch.linalg.cholesky(self.masked_information())
             v = L.transpose(-1, -2) @ v
         elif self.weights is not None:
-            v = torch.sqrt(self.weights)[..., None, None] * v
-        v = v * self.valid[..., None, None]
+            v = torch.sqrt(self.masked_weights())[..., None, None] * v
+        v = torch.where(self.valid[..., None, None], v, 0.0)
         return v[..., 0] if column else v
 
     def apply(self, fn) -> PointMapData:
@@ -134,13 +206,12 @@ class PointMapData:
         """s_e = r_eᵀ Ω_e r_e, (B, E); exactly 0 on padding. No square root, so gradients
         w.r.t. the weights are exact even at w = 0."""
         if self.information is not None:
-            s = (raw_residuals[..., None, :] @ self.information @ raw_residuals[..., None])[
-                ..., 0, 0
-            ]
+            info = self.masked_information()
+            s = (raw_residuals[..., None, :] @ info @ raw_residuals[..., None])[..., 0, 0]
         else:
             s = (raw_residuals * raw_residuals).sum(-1)
             if self.weights is not None:
-                s = self.weights * s
+                s = self.masked_weights() * s
         return torch.where(self.valid, s, torch.zeros_like(s))
 
 
@@ -186,36 +257,43 @@ class PointMapProblem(nn.Module):
     ) -> None:
         super().__init__()
         fn = "PointMapProblem"
-        _checks.check_tensor(fn, "poses", poses, (4, 4), min_batch_dims=2)
-        _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2)
-        _checks.check_tensor(fn, "observations", observations, (3,), min_batch_dims=2)
+        _checks.check_batched(fn, "poses", poses, ("B", "m"), (4, 4))
+        _checks.check_batched(fn, "points", points, ("B", "n"), (3,))
+        _checks.check_batched(fn, "observations", observations, ("B", "E"), (3,))
         _checks.check_same_kind(fn, poses=poses, points=points, observations=observations)
-        if poses.dim() != 4 or points.dim() != 3 or observations.dim() != 3:
-            raise ValueError(
-                f"{fn}: expected poses (B, m, 4, 4), points (B, n, 3), observations (B, E, 3); "
-                f"got {tuple(poses.shape)}, {tuple(points.shape)}, {tuple(observations.shape)}"
-            )
         B, m = poses.shape[:2]
         n = points.shape[1]
         E = observations.shape[1]
         _check_batch(fn, B, points=points, observations=observations)
-        pose_index = _index_tensor(fn, "pose_index", pose_index, (B, E), observations.device)
-        point_index = _index_tensor(fn, "point_index", point_index, (B, E), observations.device)
-        valid = _mask(fn, "valid", valid, (B, E), observations.device, default=True)
+        if m == 0:
+            raise ValueError(
+                f"{fn}: a problem needs at least one pose (m ≥ 1); 'poses' has shape "
+                f"{tuple(poses.shape)}"
+            )
+        edges = f" ((B, E) of 'observations' {tuple(observations.shape)})"
+        device = observations.device
+        pose_index = _index_tensor(fn, "pose_index", pose_index, (B, E), device, edges)
+        point_index = _index_tensor(fn, "point_index", point_index, (B, E), device, edges)
+        valid = _mask(fn, "valid", valid, (B, E), device, True, edges)
         fixed_poses_given = fixed_poses is not None
-        fixed_poses = _mask(fn, "fixed_poses", fixed_poses, (B, m), poses.device, default=False)
+        source = f" ((B, m) of 'poses' {tuple(poses.shape)})"
+        fixed_poses = _mask(fn, "fixed_poses", fixed_poses, (B, m), poses.device, False, source)
         if not fixed_poses_given:
             fixed_poses = fixed_poses.clone()
             fixed_poses[:, 0] = True
-        fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False)
+        source = f" ((B, n) of 'points' {tuple(points.shape)})"
+        fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False, source)
+        losses.check_loss(fn, loss)
         scalar_weights, information = _split_weights(fn, weights, B, E, observations)
         terms = _bind_terms(fn, terms, B, m, observations)
 
         _checks.check_pose_matrix(fn, "poses", poses)
         _checks.check_finite(fn, "points", points)
         self.diagnostics: list[str] = []
-        if _checks.value_checks_active():
+        checked = _checks.value_checks_active()
+        if checked:
             _check_observations(fn, observations, valid, pose_index, point_index, m, n)
+            _check_weight_values(fn, valid, scalar_weights, information)
             fixed_poses, fixed_points = _hold_ill_posed_fixed(
                 fn,
                 valid,
@@ -227,12 +305,10 @@ class PointMapProblem(nn.Module):
                 _term_links(terms, B) if terms else None,
             )
 
-        # Padding slots may hold any index (e.g. -1); point them at row 0 so that the gathers
-        # of residuals() and the Jacobians stay in range (their values are masked anyway).
-        pose_index = torch.where(valid, pose_index, 0)
-        point_index = torch.where(valid, point_index, 0)
         self.pose_tangent = nn.Parameter(se3.log(poses.detach()).clone())
         self.points = nn.Parameter(points.detach().clone())
+        # PointMapData makes the padding inert (index 0, observation 0, weight 1, information
+        # I), whatever it holds: NaN, Inf, out-of-range indices.
         self.data = PointMapData(
             pose_index=pose_index,
             point_index=point_index,
@@ -245,6 +321,9 @@ class PointMapProblem(nn.Module):
             loss=loss,
             terms=terms,
         )
+        # Checked above, or deliberately not (built inside validation(False)): a solve does not
+        # check these values again (a non-finite observation then shows in the status).
+        mark_checked(self.data)
 
     def _apply(self, fn, recurse: bool = True):
         # nn.Module.to / .double() / .cuda() reach the parameters through _apply; the data is
@@ -283,17 +362,19 @@ class PointMapProblem(nn.Module):
             )
         B, m, n, _ = observations.shape
         for name, t, size in (("poses", poses, m), ("points", points, n)):
-            if not isinstance(t, Tensor) or t.dim() < 2 or t.shape[1] != size:
-                got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            if not isinstance(t, Tensor):
+                raise TypeError(
+                    f"{fn}: argument '{name}' must be a torch.Tensor, got {_checks.describe(t)}"
+                )
+            if t.dim() < 2 or t.shape[1] != size:
                 raise ValueError(
                     f"{fn}: argument '{name}' must have {size} rows to match 'observations' "
-                    f"(B, m, n, 3) = {tuple(observations.shape)}, got {got}"
+                    f"(B, m, n, 3) = {tuple(observations.shape)}, got {tuple(t.shape)}"
                 )
-        if weights is not None and (
-            not isinstance(weights, Tensor)
-            or tuple(weights.shape) not in ((B, m, n), (B, m, n, 3, 3))
-        ):
-            got = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
+        if weights is not None:
+            _checks.check_tensor(fn, "weights", weights)
+        if weights is not None and tuple(weights.shape) not in ((B, m, n), (B, m, n, 3, 3)):
+            got = tuple(weights.shape)
             raise ValueError(
                 f"{fn}: argument 'weights' must have shape (B, m, n) = ({B}, {m}, {n}) for scalar "
                 f"weights or (B, m, n, 3, 3) for information matrices, got {got}"
@@ -344,6 +425,14 @@ class PointMapProblem(nn.Module):
         ``poses``/``points`` default to the scene's ground truth (useful for tests); pass an
         initialization (e.g. from :mod:`torchslam.initialization`) to solve.
         """
+        fields = ("poses_gt", "points_gt", "pose_index", "point_index", "observations", "valid")
+        missing = [f for f in fields if not hasattr(scene, f)]
+        if missing:
+            raise TypeError(
+                "PointMapProblem.from_scene: argument 'scene' must be a SyntheticScene "
+                f"(torchslam.data.synthetic.make_scene), got {_checks.describe(scene)} without "
+                f"{', '.join(missing)}"
+            )
         return cls(
             scene.poses_gt if poses is None else poses,
             scene.points_gt if points is None else points,
@@ -482,7 +571,7 @@ def raw_residuals_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> T
     """r_e = X_ij − T_i X_j from pose matrices T (B, m, 4, 4); (B, E, 3), zero on padding."""
     T_e = per_observation(T, data.flat_pose_index)
     X_e = gather_points(points, data)
-    r = data.observations - se3._act(T_e, X_e)
+    r = data.masked_observations() - se3._act(T_e, X_e)
     return torch.where(data.valid[..., None], r, torch.zeros_like(r))
 
 
@@ -515,7 +604,7 @@ def jacobian_blocks(
         return jacobians.analytic_blocks(R_e, X_e)
     if mode == "jacrev":
         xi_e = gather_poses(pose_tangent, data)
-        return jacobians.jacrev_blocks(xi_e, X_e, data.observations)
+        return jacobians.jacrev_blocks(xi_e, X_e, data.masked_observations())
     raise ValueError(f"jacobian_blocks: 'mode' must be 'analytic' or 'jacrev', got {mode!r}")
 
 
@@ -532,24 +621,30 @@ def _check_batch(fn: str, B: int, **tensors: Tensor) -> None:
             )
 
 
-def _index_tensor(fn: str, name: str, x: object, shape: tuple, device) -> Tensor:
+def _index_tensor(fn: str, name: str, x: object, shape: tuple, device, source: str = "") -> Tensor:
     if not isinstance(x, Tensor):
         raise TypeError(f"{fn}: argument '{name}' must be a torch.Tensor, got {type(x).__name__}")
     if x.dtype.is_floating_point or x.dtype.is_complex or x.dtype == torch.bool:
         raise TypeError(f"{fn}: argument '{name}' must be an integer tensor, got {x.dtype}")
     if tuple(x.shape) != tuple(shape):
-        raise ValueError(f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}")
+        raise ValueError(
+            f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}{source}"
+        )
     return x.to(device=device, dtype=torch.long)
 
 
-def _mask(fn: str, name: str, x: object, shape: tuple, device, default: bool) -> Tensor:
+def _mask(
+    fn: str, name: str, x: object, shape: tuple, device, default: bool, source: str = ""
+) -> Tensor:
     if x is None:
         return torch.full(shape, default, dtype=torch.bool, device=device)
     if not isinstance(x, Tensor) or x.dtype != torch.bool:
         got = x.dtype if isinstance(x, Tensor) else type(x).__name__
         raise TypeError(f"{fn}: argument '{name}' must be a bool tensor, got {got}")
     if tuple(x.shape) != tuple(shape):
-        raise ValueError(f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}")
+        raise ValueError(
+            f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}{source}"
+        )
     return x.to(device)
 
 
@@ -561,31 +656,83 @@ def _split_weights(
     _checks.check_tensor(fn, "weights", weights)
     _checks.check_same_kind(fn, observations=observations, weights=weights)
     if tuple(weights.shape) == (B, E):
-        _checks.check_finite(fn, "weights", weights)
-        if _checks.value_checks_active() and bool((weights < 0).any()):
-            b, e = (int(i) for i in (weights < 0).nonzero()[0])
-            raise ValueError(
-                f"{fn}: argument 'weights' must be ≥ 0; problem {b}, observation {e} has "
-                f"{float(weights[b, e]):.6g}"
-            )
         return weights, None
     if tuple(weights.shape) == (B, E, 3, 3):
-        _checks.check_finite(fn, "weights", weights)
-        if _checks.value_checks_active():
-            asym = (weights - weights.transpose(-1, -2)).abs().amax(dim=(-1, -2))
-            _, info = torch.linalg.cholesky_ex(weights.detach())
-            bad = (info > 0) | (asym > 1e-9 * weights.abs().amax(dim=(-1, -2)).clamp_min(1))
-            if bool(bad.any()):
-                b, e = (int(i) for i in bad.nonzero()[0])
-                raise ValueError(
-                    f"{fn}: information matrices in 'weights' must be symmetric positive "
-                    f"definite; problem {b}, observation {e} is not"
-                )
         return None, weights
     raise ValueError(
         f"{fn}: argument 'weights' must have shape (B, E) = ({B}, {E}) for scalar weights or "
         f"(B, E, 3, 3) = ({B}, {E}, 3, 3) for information matrices, got {tuple(weights.shape)}"
     )
+
+
+def _check_weight_values(
+    fn: str, valid: Tensor, weights: Tensor | None, information: Tensor | None
+) -> None:
+    """Scalar weights finite and ≥ 0, information matrices symmetric positive definite, at
+    the valid observations (padding may hold anything)."""
+    if weights is not None:
+        w = weights.detach()
+        bad = valid & ~(torch.isfinite(w) & (w >= 0))
+        if bool(bad.any()):
+            b, e = (int(i) for i in bad.nonzero()[0])
+            raise ValueError(
+                f"{fn}: argument 'weights' must be finite and ≥ 0 at valid observations; "
+                f"problem {b}, observation {e} has {float(w[b, e]):.6g}"
+            )
+    if information is not None:
+        eye = torch.eye(3, dtype=information.dtype, device=information.device)
+        info = torch.where(valid[..., None, None], information.detach(), eye)
+        finite = torch.isfinite(info).all(dim=(-1, -2))
+        info = torch.where(finite[..., None, None], info, eye)
+        asym = (info - info.transpose(-1, -2)).abs().amax(dim=(-1, -2))
+        _, not_pd = torch.linalg.cholesky_ex(info)
+        bad = ~finite | (not_pd > 0) | (asym > 1e-9 * info.abs().amax(dim=(-1, -2)).clamp_min(1))
+        if bool(bad.any()):
+            b, e = (int(i) for i in bad.nonzero()[0])
+            what = "finite, symmetric positive definite"
+            raise ValueError(
+                f"{fn}: information matrices in 'weights' must be {what}; problem {b}, "
+                f"observation {e} is not"
+            )
+
+
+def mark_checked(data: PointMapData) -> None:
+    """Record that the values of ``data`` (index ranges, finite observations, weights) were
+    checked (or deliberately not, inside ``validation(False)``), so that a solve does not
+    check them again (a new PointMapData, e.g. from ``dataclasses.replace``, is checked
+    anew)."""
+    object.__setattr__(data, "_values_checked", True)
+
+
+def check_data_values(fn: str, data: PointMapData) -> None:
+    """Value checks of a :class:`PointMapData` (once; only when value checks are active):
+    indices in range, observations finite and weights valid at the valid slots."""
+    if getattr(data, "_values_checked", False) or not _checks.value_checks_active():
+        return
+    _check_observations(
+        fn,
+        data.observations,
+        data.valid,
+        data.pose_index,
+        data.point_index,
+        data.num_poses,
+        data.num_points,
+    )
+    _check_weight_values(fn, data.valid, data.weights, data.information)
+    for k, term in enumerate(data.terms):
+        if term.pose_index.dim() != 3 or term.pose_index.shape[0] != data.valid.shape[0]:
+            raise ValueError(
+                f"{fn}: data.terms[{k}] ({type(term).__name__}) is not bound to the batch of "
+                f"B = {data.valid.shape[0]} problems; build the problem with terms=[...] (or "
+                "call term.bind(B, m, observations))"
+            )
+        bad = term.valid & ((term.pose_index < 0) | (term.pose_index >= data.num_poses)).any(-1)
+        if bool(bad.any()):
+            raise ValueError(
+                f"{fn}: data.terms[{k}] ({type(term).__name__}) has a pose index outside "
+                f"[0, {data.num_poses})"
+            )
+    mark_checked(data)
 
 
 def _check_observations(
@@ -601,9 +748,13 @@ def _check_observations(
         bad = valid & ((index < 0) | (index >= size))
         if bool(bad.any()):
             b, e = (int(i) for i in bad.nonzero()[0])
+            none = ""
+            if size == 0:
+                what = "points (n = 0)" if name == "point_index" else "poses (m = 0)"
+                none = f"; there are no {what}, so no observation may be valid"
             raise ValueError(
                 f"{fn}: '{name}' out of range [0, {size}): problem {b}, observation {e} has "
-                f"index {int(index[b, e])}"
+                f"index {int(index[b, e])}{none}"
             )
     bad = valid[..., None] & ~torch.isfinite(observations.detach())
     if bool(bad.any()):

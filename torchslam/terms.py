@@ -116,23 +116,55 @@ class Term:
             raise ValueError(f"{fn}: give 'weight' or 'information', not both")
         self.pose_index = pose_index.long()
         lead = tuple(pose_index.shape[:-1])
+        if valid is None:
+            valid = torch.ones(lead, dtype=torch.bool, device=pose_index.device)
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+            raise TypeError(
+                f"{fn}: argument 'valid' must be a bool tensor of shape {lead}, got "
+                f"{_checks.describe(valid)}"
+            )
+        if tuple(valid.shape) != lead:
+            raise ValueError(
+                f"{fn}: argument 'valid' must be a bool tensor of shape {lead}, got "
+                f"{tuple(valid.shape)}"
+            )
+        valid = valid.to(pose_index.device)
+        if constants is not None and not isinstance(constants, Mapping):
+            raise TypeError(
+                f"{fn}: argument 'constants' must be a mapping name → tensor, got "
+                f"{_checks.describe(constants)}"
+            )
         self.constants = dict(constants or {})
+        check_values = _checks.value_checks_active()
         for name, value in self.constants.items():
+            if not isinstance(name, str) or not name.isidentifier():
+                raise TypeError(
+                    f"{fn}: constant names must be identifiers (they are passed to residual() "
+                    f"by name), got {name!r}"
+                )
             _checks.check_tensor(fn, name, value, floating=False)
             if tuple(value.shape[: len(lead)]) != lead:
                 raise ValueError(
                     f"{fn}: constant '{name}' must have leading shape {lead} (those of "
                     f"'pose_index' without the arity), got {tuple(value.shape)}"
                 )
+            if check_values and (value.is_floating_point() or value.is_complex()):
+                _check_finite_where_valid(fn, f"constant '{name}'", value, valid)
         if weight is not None:
             _checks.check_tensor(fn, "weight", weight)
             if tuple(weight.shape) != lead:
                 raise ValueError(
                     f"{fn}: argument 'weight' must have shape {lead}, got {tuple(weight.shape)}"
                 )
-            _checks.check_finite(fn, "weight", weight)
-            if _checks.value_checks_active() and bool((weight < 0).any()):
-                raise ValueError(f"{fn}: argument 'weight' must be ≥ 0, got a negative entry")
+            if check_values:
+                w = weight.detach()
+                bad = valid.to(w.device) & ~(torch.isfinite(w) & (w >= 0))
+                if bool(bad.any()):
+                    where = tuple(int(i) for i in bad.nonzero()[0])
+                    raise ValueError(
+                        f"{fn}: argument 'weight' must be finite and ≥ 0 at valid instances; "
+                        f"instance {where} has {float(w[where]):.6g}"
+                    )
         if information is not None:
             _checks.check_tensor(fn, "information", information)
             if (
@@ -144,25 +176,24 @@ class Term:
                     f"{fn}: argument 'information' must have shape {lead} + (d, d), "
                     f"got {tuple(information.shape)}"
                 )
-            _checks.check_finite(fn, "information", information)
-            if _checks.value_checks_active() and information.numel() > 0:
-                info = information.detach()
+            if check_values and information.numel() > 0:
+                mask = valid.to(information.device)[..., None, None]
+                eye = torch.eye(
+                    information.shape[-1], dtype=information.dtype, device=information.device
+                )
+                info = torch.where(mask, information.detach(), eye)
+                finite = torch.isfinite(info).all(dim=(-1, -2))
+                info = torch.where(finite[..., None, None], info, eye)
                 asym = (info - info.transpose(-1, -2)).abs().amax(dim=(-1, -2))
                 scale = info.abs().amax(dim=(-1, -2)).clamp_min(1)
-                bad = (torch.linalg.cholesky_ex(info)[1] > 0) | (asym > 1e-9 * scale)
+                bad = ~finite | (torch.linalg.cholesky_ex(info)[1] > 0) | (asym > 1e-9 * scale)
                 if bool(bad.any()):
                     where = tuple(int(i) for i in bad.nonzero()[0])
                     raise ValueError(
-                        f"{fn}: argument 'information' must be symmetric positive definite; "
-                        f"instance {where} is not"
+                        f"{fn}: argument 'information' must be finite, symmetric positive "
+                        f"definite at valid instances; instance {where} is not"
                     )
-        if valid is None:
-            valid = torch.ones(lead, dtype=torch.bool, device=pose_index.device)
-        if not isinstance(valid, Tensor) or valid.dtype != torch.bool or tuple(valid.shape) != lead:
-            got = (tuple(valid.shape), valid.dtype) if isinstance(valid, Tensor) else type(valid)
-            raise ValueError(
-                f"{fn}: argument 'valid' must be a bool tensor of shape {lead}, got {got}"
-            )
+        losses.check_loss(fn, loss)
         self.weight = weight
         self.information = information
         self.loss = loss
@@ -246,6 +277,11 @@ class Term:
         """A copy with every tensor expanded to batch ``batch_size``, checked against a problem
         of ``num_poses`` poses whose floating tensors are like ``like`` (dtype, device)."""
         fn = type(self).__name__
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 0:
+            raise ValueError(f"{fn}.bind: 'batch_size' must be an int ≥ 0, got {batch_size!r}")
+        if isinstance(num_poses, bool) or not isinstance(num_poses, int) or num_poses < 1:
+            raise ValueError(f"{fn}.bind: 'num_poses' must be an int ≥ 1, got {num_poses!r}")
+        _checks.check_tensor(f"{fn}.bind", "like", like)
         B = batch_size
         batched = self.pose_index.dim() == 3
         if batched and self.pose_index.shape[0] not in (1, B):
@@ -267,9 +303,6 @@ class Term:
         new = copy.copy(self)
         new.pose_index = expand(self.pose_index.to(like.device))
         new.valid = expand(self.valid.to(like.device))
-        new.constants = {k: expand(v) for k, v in self.constants.items()}
-        new.weight = None if self.weight is None else expand(self.weight)
-        new.information = None if self.information is None else expand(self.information)
         bad = new.valid & ((new.pose_index < 0) | (new.pose_index >= num_poses)).any(-1)
         if bool(bad.any()):
             b, k = (int(i) for i in bad.nonzero()[0])
@@ -277,23 +310,40 @@ class Term:
                 f"{fn}: 'pose_index' out of range [0, {num_poses}): problem {b}, instance {k} "
                 f"has {new.pose_index[b, k].tolist()}"
             )
+        # Padding instances are inert, whatever they hold (NaN, Inf, any index): their poses
+        # are pose 0 here; on every use (masked_constants, masked_weighting) their constants
+        # are those of a valid instance (values residual() handles), weight 1, information I,
+        # by torch.where, so no NaN reaches a value or a gradient.
+        flat_valid = new.valid.reshape(-1)
+        first = int(flat_valid.to(torch.uint8).argmax()) if flat_valid.numel() > 0 else 0
+        new._fill_instance = first if flat_valid.numel() > 0 and bool(flat_valid[first]) else -1
         new.pose_index = torch.where(new.valid[..., None], new.pose_index, 0)
-        if new.num_instances > 0:
+        new.constants = {k: expand(v) for k, v in self.constants.items()}
+        new.weight = None if self.weight is None else expand(self.weight)
+        new.information = None if self.information is None else expand(self.information)
+        if new.num_instances > 0 and B > 0:
+            # One instance, batch dims (1, 1): poses (1, 1, a, 4, 4), constants (1, 1, …).
             r = new.residual(
                 se3.identity(1, 1, new.arity, dtype=like.dtype, device=like.device),
-                **{k: v[:1, :1] for k, v in new.constants.items()},
+                **{k: v[:1, :1] for k, v in masked_constants(new).items()},
             )
-            if r.dim() != 3 or tuple(r.shape[:2]) != (1, 1):
+            if not isinstance(r, Tensor) or r.dim() != 3 or tuple(r.shape[:2]) != (1, 1):
+                got = tuple(r.shape) if isinstance(r, Tensor) else _checks.describe(r)
                 raise ValueError(
                     f"{fn}.residual must return shape (..., d) for poses (..., a, 4, 4); for "
-                    f"one instance (1, 1, a, 4, 4) it returned {tuple(r.shape)}"
+                    f"one instance (1, 1, a, 4, 4) it returned {got}"
+                )
+            if r.dtype != like.dtype:
+                raise TypeError(
+                    f"{fn}.residual must return the problem's dtype {like.dtype}, got {r.dtype}"
                 )
             d = new.residual_dim = r.shape[-1]
-            if new.information is not None and tuple(new.information.shape[-2:]) != (d, d):
-                raise ValueError(
-                    f"{fn}: argument 'information' must be ({d}, {d}) per instance for its "
-                    f"{d}-dim residual, got {tuple(new.information.shape[-2:])}"
-                )
+            if new.information is not None:
+                if tuple(new.information.shape[-2:]) != (d, d):
+                    raise ValueError(
+                        f"{fn}: argument 'information' must be ({d}, {d}) per instance for its "
+                        f"{d}-dim residual, got {tuple(new.information.shape[-2:])}"
+                    )
         return new
 
     def __repr__(self) -> str:
@@ -304,6 +354,47 @@ class Term:
             f"{type(self).__name__}(instances={self.num_instances}, arity={self.arity}, "
             f"weighting={weighting}, loss={self.loss!r})"
         )
+
+
+def _check_finite_where_valid(fn: str, what: str, value: Tensor, valid: Tensor) -> None:
+    """ValueError if ``value`` (lead + tail) has a NaN or Inf at a valid instance."""
+    lead = valid.dim()
+    finite = torch.isfinite(value.detach()).flatten(lead) if value.dim() > lead else None
+    finite = torch.isfinite(value.detach()) if finite is None else finite.all(-1)
+    bad = valid.to(value.device) & ~finite
+    if bool(bad.any()):
+        where = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"{fn}: {what} has a non-finite value (NaN or Inf) at valid instance {where}; "
+            "remove the instance or mark it invalid with 'valid'"
+        )
+
+
+def masked_constants(term: Term) -> dict[str, Tensor]:
+    """The constants of a bound term with those of a valid instance on its padding instances
+    (zeros when no instance is valid), by ``torch.where``: what residual() is called with."""
+    fill = getattr(term, "_fill_instance", None)
+    if fill is None:  # not bound: as given
+        return dict(term.constants)
+    B, K = term.valid.shape
+    out = {}
+    for name, v in term.constants.items():
+        tail = v.shape[2:]
+        value = v.reshape(B * K, *tail)[fill] if fill >= 0 else v.new_zeros(tail)
+        out[name] = torch.where(term.valid.reshape(B, K, *([1] * len(tail))), v, value)
+    return out
+
+
+def masked_weighting(term: Term) -> tuple[Tensor | None, Tensor | None]:
+    """(weight (B, K) with 1, information (B, K, d, d) with I, on the padding instances) of
+    a bound term; None where the term has none."""
+    weight, information = term.weight, term.information
+    if weight is not None:
+        weight = torch.where(term.valid, weight, 1.0)
+    if information is not None:
+        eye = torch.eye(information.shape[-1], dtype=information.dtype, device=information.device)
+        information = torch.where(term.valid[..., None, None], information, eye)
+    return weight, information
 
 
 def term_poses(term: Term, poses: Tensor) -> Tensor:
@@ -319,11 +410,12 @@ def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[T
     ``mode="analytic"`` uses :meth:`Term.jacobians` when the term has them, else ``jacrev``;
     ``mode="jacrev"`` always differentiates :meth:`Term.residual` with ``torch.func.jacrev``.
     """
+    constants = masked_constants(term)
     if mode == "analytic":
-        out = term.jacobians(poses, **term.constants)
+        out = term.jacobians(poses, **constants)
         if out is not None:
             return out
-    r = term.residual(poses, **term.constants)
+    r = term.residual(poses, **constants)
     B, K, a = poses.shape[:3]
     if B * K == 0:
         return r, r.new_zeros(B, K, r.shape[-1], a, 6)
@@ -331,21 +423,28 @@ def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[T
     def perturbed(delta: Tensor, T: Tensor, constants: dict[str, Tensor]) -> Tensor:
         return term.residual(T @ se3._exp(delta), **constants)
 
-    flat_constants = {k: v.reshape(B * K, *v.shape[2:]) for k, v in term.constants.items()}
+    flat_constants = {k: v.reshape(B * K, *v.shape[2:]) for k, v in constants.items()}
     J = torch.func.vmap(torch.func.jacrev(perturbed))(
         poses.new_zeros(B * K, a, 6), poses.reshape(B * K, a, 4, 4), flat_constants
     )
     return r, J.reshape(B, K, *J.shape[1:])
 
 
-def _check_measurements(fn: str, measurements: object, lead: tuple[int, ...]) -> None:
-    """Measurements of a built-in term: poses of shape lead + (4, 4)."""
+def _check_measurements(
+    fn: str, measurements: object, lead: tuple[int, ...], valid: object = None
+) -> None:
+    """Measurements of a built-in term: poses of shape lead + (4, 4), rigid transforms at
+    the valid instances (padding instances may hold anything)."""
     _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
     if tuple(measurements.shape[:-2]) != lead:
         raise ValueError(
             f"{fn}: argument 'measurements' must have shape {lead} + (4, 4) to match "
             f"'pose_index', got {tuple(measurements.shape)}"
         )
+    if not _checks.value_checks_active():
+        return
+    if isinstance(valid, Tensor) and valid.dtype == torch.bool and tuple(valid.shape) == lead:
+        measurements = measurements[valid.to(measurements.device)]
     _checks.check_pose_matrix(fn, "measurements", measurements)
 
 
@@ -390,7 +489,7 @@ class RelativePoseTerm(Term):
                 f"got {tuple(pose_index.shape)}"
             )
         if isinstance(pose_index, Tensor):
-            _check_measurements(fn, measurements, tuple(pose_index.shape[:-1]))
+            _check_measurements(fn, measurements, tuple(pose_index.shape[:-1]), valid)
         super().__init__(
             pose_index,
             {"measurements": measurements},
@@ -441,7 +540,7 @@ class PosePriorTerm(Term):
                 f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), "
                 f"got {tuple(pose_index.shape)}"
             )
-        _check_measurements(fn, measurements, tuple(pose_index.shape))
+        _check_measurements(fn, measurements, tuple(pose_index.shape), valid)
         super().__init__(
             pose_index[..., None],
             {"measurements": measurements},
@@ -461,27 +560,31 @@ class PosePriorTerm(Term):
 
 def term_whitening(term: Term) -> Tensor | None:
     """U with UᵀU = Ω per instance (B, K, d, d), √w (B, K), or None for unit weights."""
-    if term.information is not None:
-        return torch.linalg.cholesky(term.information).transpose(-1, -2)
-    if term.weight is not None:
-        return torch.sqrt(term.weight)
+    weight, information = masked_weighting(term)
+    if information is not None:
+        return torch.linalg.cholesky(information).transpose(-1, -2)
+    if weight is not None:
+        return torch.sqrt(weight)
     return None
 
 
 def term_squared_norms(term: Term, r: Tensor) -> Tensor:
     """s_k = r_kᵀ Ω_k r_k (B, K), 0 on padding; no square root (exact gradients at w = 0)."""
-    if term.information is not None:
-        s = (r[..., None, :] @ term.information @ r[..., None])[..., 0, 0]
+    weight, information = masked_weighting(term)
+    r = torch.where(term.valid[..., None], r, 0.0)
+    if information is not None:
+        s = (r[..., None, :] @ information @ r[..., None])[..., 0, 0]
     else:
         s = (r * r).sum(-1)
-        if term.weight is not None:
-            s = term.weight * s
+        if weight is not None:
+            s = weight * s
     return torch.where(term.valid, s, torch.zeros_like(s))
 
 
 def term_cost(term: Term, poses: Tensor) -> Tensor:
     """½ Σ_k ρ(s_k) of a bound term at all poses (B, m, 4, 4) → (B,). Differentiable."""
-    s = term_squared_norms(term, term.residual(term_poses(term, poses), **term.constants))
+    r = term.residual(term_poses(term, poses), **masked_constants(term))
+    s = term_squared_norms(term, r)
     if term.loss is not None:
         s = torch.where(term.valid, term.loss(s)[0], torch.zeros_like(s))
     return 0.5 * s.sum(-1)

@@ -4,7 +4,9 @@ solve_tensors() do to their inputs."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -128,7 +130,6 @@ def test_without_tolerances_lm_stops_at_the_damping_limit():
         ("jacobian", "finite_differences"),
         ("linear_solver", "cg"),
         ("max_iterations", -1),
-        ("max_iterations", 2.5),
         ("function_tolerance", -1e-6),
         ("gradient_tolerance", -1.0),
         ("parameter_tolerance", float("nan")),
@@ -137,11 +138,54 @@ def test_without_tolerances_lm_stops_at_the_damping_limit():
         ("min_lambda", -1e-3),
         ("step_size", -0.1),
         ("schur_chunk_size", 0),
+        ("initial_lambda", 0.0),
+        ("initial_lambda", float("inf")),
+        ("min_lambda", float("inf")),
+        ("max_lambda", 0.0),
+        ("function_tolerance", float("inf")),
+        ("gradient_tolerance", float("nan")),
+        ("step_size", 0.0),
+        ("step_size", float("nan")),
+        ("dense_max_variables", -1),
+        ("reduced_solver", "cholmod"),
+        ("ordering", "amd"),
     ],
 )
 def test_config_rejects_bad_values_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"SolverConfig: '{field}'"):
         SolverConfig(**{field: value})
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("max_iterations", 2.5),
+        ("max_iterations", True),
+        ("max_iterations", "10"),
+        ("schur_chunk_size", float("nan")),
+        ("schur_chunk_size", 1e6),
+        ("dense_max_variables", None),
+        ("initial_lambda", "1e-4"),
+        ("function_tolerance", None),
+        ("gradient_tolerance", False),
+        ("step_size", torch.tensor(0.1)),
+        ("algorithm", None),
+        ("jacobian", 1),
+    ],
+)
+def test_config_rejects_wrong_types_naming_the_field(field, value):
+    # Options follow one convention: any unusable value, of any type, is a ValueError.
+    with pytest.raises(ValueError, match=f"SolverConfig: '{field}' must be"):
+        SolverConfig(**{field: value})
+
+
+def test_config_relations_and_accepted_edge_values():
+    with pytest.raises(ValueError, match=r"'min_lambda' \(1\.0\) must not exceed 'max_lambda'"):
+        SolverConfig(min_lambda=1.0, max_lambda=0.5)
+    # max_lambda = inf (never give up), zero tolerances and integer floats are fine.
+    config = SolverConfig(max_lambda=math.inf, function_tolerance=0, initial_lambda=1)
+    assert config.max_lambda == math.inf and isinstance(config.initial_lambda, float)
+    assert SolverConfig(max_iterations=np.int64(3)).max_iterations == 3
 
 
 def test_config_is_frozen_and_keeps_its_values():

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["SolverConfig"]
+__all__ = ["SolverConfig", "check_implicit_config", "check_int", "check_number"]
 
 _ALGORITHMS = ("levenberg_marquardt", "gauss_newton", "gradient_descent")
 _DAMPINGS = ("marquardt", "levenberg")
@@ -74,37 +76,97 @@ class SolverConfig:
         _choice("linear_solver", self.linear_solver, _LINEAR_SOLVERS)
         _choice("reduced_solver", self.reduced_solver, _REDUCED_SOLVERS)
         _choice("ordering", self.ordering, _ORDERINGS)
-        if (
-            not isinstance(self.dense_max_variables, int)
-            or isinstance(self.dense_max_variables, bool)
-            or self.dense_max_variables < 0
+        for name, low in (
+            ("dense_max_variables", 0),
+            ("max_iterations", 0),
+            ("schur_chunk_size", 1),
         ):
-            raise ValueError(
-                "SolverConfig: 'dense_max_variables' must be an int ≥ 0, "
-                f"got {self.dense_max_variables!r}"
+            object.__setattr__(
+                self, name, check_int("SolverConfig", name, getattr(self, name), low)
             )
-        if not isinstance(self.max_iterations, int) or self.max_iterations < 0:
-            raise ValueError(
-                f"SolverConfig: 'max_iterations' must be an int ≥ 0, got {self.max_iterations!r}"
-            )
-        for name in (
-            "initial_lambda",
-            "max_lambda",
-            "min_lambda",
-            "function_tolerance",
-            "gradient_tolerance",
-            "parameter_tolerance",
-            "step_size",
+        # (name, lowest value, whether the lowest value itself is allowed, whether +inf is).
+        for name, low, closed, infinite in (
+            ("initial_lambda", 0.0, False, False),
+            ("max_lambda", 0.0, False, True),
+            ("min_lambda", 0.0, True, False),
+            ("function_tolerance", 0.0, True, False),
+            ("gradient_tolerance", 0.0, True, False),
+            ("parameter_tolerance", 0.0, True, False),
+            ("step_size", 0.0, False, False),
         ):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"SolverConfig: '{name}' must be a number ≥ 0, got {value!r}")
-        if self.schur_chunk_size < 1:
+            value = check_number("SolverConfig", name, getattr(self, name), low, closed, infinite)
+            object.__setattr__(self, name, value)
+        if self.linear_solver == "dense" and self.reduced_solver == "sparse":
             raise ValueError(
-                f"SolverConfig: 'schur_chunk_size' must be ≥ 1, got {self.schur_chunk_size}"
+                "SolverConfig: 'reduced_solver' = 'sparse' factors the reduced pose system of "
+                "linear_solver='schur'; with linear_solver='dense' leave it 'auto' or 'dense'"
+            )
+        if self.min_lambda > self.max_lambda:
+            raise ValueError(
+                f"SolverConfig: 'min_lambda' ({self.min_lambda!r}) must not exceed 'max_lambda' "
+                f"({self.max_lambda!r})"
             )
 
 
 def _choice(name: str, value: object, allowed: tuple[str, ...]) -> None:
+    if not isinstance(value, str):
+        raise ValueError(
+            f"SolverConfig: '{name}' must be one of {allowed}, got {type(value).__name__} {value!r}"
+        )
     if value not in allowed:
         raise ValueError(f"SolverConfig: '{name}' must be one of {allowed}, got {value!r}")
+
+
+def check_int(owner: str, name: str, value: object, low: int) -> int:
+    """An integer option ≥ ``low``, as an int; bools, floats and other types are refused
+    with a ValueError (the options' convention: any unusable value is a ValueError)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(
+            f"{owner}: '{name}' must be an int ≥ {low}, got {type(value).__name__} {value!r}"
+        )
+    if value < low:
+        raise ValueError(f"{owner}: '{name}' must be an int ≥ {low}, got {value!r}")
+    return int(value)
+
+
+def check_number(
+    owner: str, name: str, value: object, low: float, closed: bool, infinite: bool = False
+) -> float:
+    """A real option > ``low`` (≥ when ``closed``), finite unless ``infinite`` allows +inf;
+    NaN and non-numbers are refused (ValueError). Returns it as a float."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(
+            f"{owner}: '{name}' must be a number, got {type(value).__name__} {value!r}"
+        )
+    try:
+        value = float(value)
+    except OverflowError:  # an int beyond the float range
+        value = math.inf
+    relation = "≥" if closed else ">"
+    ok = value >= low if closed else value > low
+    if not ok or math.isnan(value) or (math.isinf(value) and not infinite):
+        finite = "a finite number" if not infinite else "a number"
+        raise ValueError(f"{owner}: '{name}' must be {finite} {relation} {low:g}, got {value!r}")
+    return value
+
+
+_HESSIANS = ("exact", "gauss_newton")
+
+
+def check_implicit_config(config: object) -> None:
+    """Validate the fields of an ``ImplicitConfig`` (:mod:`.differentiable`) at construction:
+    ``hessian`` one of ("exact", "gauss_newton"), ``tolerance`` a finite number ≥ 0,
+    ``max_iterations`` an int ≥ 1 (ValueError otherwise)."""
+    owner = "ImplicitConfig"
+    hessian = getattr(config, "hessian", None)
+    if not isinstance(hessian, str):
+        raise ValueError(
+            f"{owner}: 'hessian' must be one of {_HESSIANS}, got {type(hessian).__name__} "
+            f"{hessian!r}"
+        )
+    if hessian not in _HESSIANS:
+        raise ValueError(f"{owner}: 'hessian' must be one of {_HESSIANS}, got {hessian!r}")
+    tolerance = check_number(owner, "tolerance", getattr(config, "tolerance", None), 0.0, True)
+    object.__setattr__(config, "tolerance", tolerance)
+    iterations = check_int(owner, "max_iterations", getattr(config, "max_iterations", None), 1)
+    object.__setattr__(config, "max_iterations", iterations)

@@ -100,7 +100,7 @@ from torchslam import _checks, losses
 from torchslam.lie import se3
 from torchslam.problem import PointMapData, cost, cost_from_poses
 from torchslam.solver import linear
-from torchslam.solver.config import SolverConfig
+from torchslam.solver.config import SolverConfig, check_implicit_config
 from torchslam.solver.linearize import (
     StructuredLinearization,
     linearize,
@@ -113,6 +113,7 @@ from torchslam.solver.solve import (
     _result,
     _run,
     _State,
+    check_solve_inputs,
     solve_tensors,
     sparse_schur,
 )
@@ -140,6 +141,7 @@ class ImplicitConfig:
     max_iterations: int = 100
 
     def __post_init__(self) -> None:
+        check_implicit_config(self)
         if self.hessian not in _HESSIANS:
             raise ValueError(
                 f"ImplicitConfig: 'hessian' must be one of {_HESSIANS}, got {self.hessian!r}"
@@ -194,6 +196,7 @@ def solve_differentiable(
             derivative (``create_graph=True``) through the "implicit" backward.
     """
     fn = "solve_differentiable"
+    config = check_solve_inputs(fn, pose_tangent, points, data, config)
     _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2)
     _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2)
     _checks.check_same_kind(

@@ -46,7 +46,14 @@ from torchslam import losses
 from torchslam.jacobians import analytic_blocks
 from torchslam.lie import se3, so3
 from torchslam.problem import PointMapData, gather_points, jacobian_blocks, per_observation
-from torchslam.terms import Term, term_jacobians, term_poses, term_whitening, terms_cost
+from torchslam.terms import (
+    Term,
+    masked_weighting,
+    term_jacobians,
+    term_poses,
+    term_whitening,
+    terms_cost,
+)
 
 __all__ = [
     "BlockLinearization",
@@ -132,9 +139,9 @@ class StructuredLinearization:
 def whitening_factors(data: PointMapData) -> Tensor | None:
     """Lᵀ with Ω = L Lᵀ per observation (B, E, 3, 3), √w (B, E), or None for unit weights."""
     if data.information is not None:
-        return torch.linalg.cholesky(data.information).transpose(-1, -2)
+        return torch.linalg.cholesky(data.masked_information()).transpose(-1, -2)
     if data.weights is not None:
-        return torch.sqrt(data.weights)
+        return torch.sqrt(data.masked_weights())
     return None
 
 
@@ -183,7 +190,8 @@ def blocks_from_monomials(c: Tensor) -> Tensor:
 def _residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData):
     T_e = per_observation(se3._exp(pose_tangent), data.flat_pose_index)
     X_e = gather_points(points, data)
-    return data.observations - se3._act(T_e, X_e), T_e, X_e
+    r = data.masked_observations() - se3._act(T_e, X_e)
+    return torch.where(data.valid[..., None], r, 0.0), T_e, X_e
 
 
 def _slots(data: PointMapData) -> tuple[Tensor, Tensor]:
@@ -221,7 +229,7 @@ def _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structu
     free_pose = ~torch.gather(data.fixed_poses, 1, data.pose_index)
     free_point = ~torch.gather(data.fixed_points, 1, data.point_index)
     valid = data.valid
-    weight = data.weights if data.weights is not None else torch.ones_like(r[..., 0])
+    weight = data.masked_weights() if data.weights is not None else torch.ones_like(r[..., 0])
     weight = torch.where(valid, weight, torch.zeros_like(weight))
 
     if structured and data.information is None and jacobian_mode == "analytic":
@@ -385,13 +393,16 @@ def _whitened_term(term: Term, r: Tensor, J: Tensor) -> tuple[Tensor, Tensor, Te
     """(U r, U J, ones) for information matrices, (r, J, w) for scalar weights, (r, J, ones)
     otherwise (J (B, K, d, a, 6)); zero on padding."""
     scale = torch.ones_like(r[..., 0])
+    valid = term.valid
+    # Padding instances: zero residual and blocks before whitening (no NaN into U r, U J).
+    r = torch.where(valid[..., None], r, 0.0)
+    J = torch.where(valid[..., None, None, None], J, 0.0)
     if term.information is not None:
         U = term_whitening(term)
         r = (U @ r[..., None])[..., 0]
         J = (U @ J.flatten(-2)).reshape(J.shape)
     elif term.weight is not None:
-        scale = term.weight
-    valid = term.valid
+        scale = masked_weighting(term)[0]
     return (
         torch.where(valid[..., None], r, torch.zeros_like(r)),
         torch.where(valid[..., None, None, None], J, torch.zeros_like(J)),

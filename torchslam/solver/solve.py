@@ -25,7 +25,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
-from torchslam.problem import PointMapData, PointMapProblem
+from torchslam.problem import PointMapData, PointMapProblem, check_data_values
 from torchslam.solver import linear
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import (
@@ -36,13 +36,71 @@ from torchslam.solver.linearize import (
 )
 from torchslam.solver.result import SolveResult, Status
 
-__all__ = ["IterationInfo", "solve", "solve_tensors"]
+__all__ = ["IterationInfo", "check_solve_inputs", "solve", "solve_tensors"]
 
 logger = logging.getLogger("torchslam.solver")
 
 IterationInfo = dict
 """Per-iteration progress passed to ``callback``: iteration, cost (B,), lambda (B,),
 step_norm (B,), accepted (B,), active (B,), seconds."""
+
+
+def check_solve_inputs(
+    fn: str,
+    pose_tangent: object,
+    points: object,
+    data: object,
+    config: object = None,
+) -> SolverConfig:
+    """Validate the arguments of a solve entry point; returns the config (default filled in).
+
+    Checks (TypeError for types and dtypes, ValueError for shapes and values, each naming
+    ``fn`` and the argument): ``data`` a :class:`PointMapData` (not the problem itself),
+    ``pose_tangent`` (B, m, 6) and ``points`` (B, n, 3) matching it, in its dtype and device,
+    ``config`` None or a :class:`SolverConfig`. When value checks are active
+    (:func:`torchslam.validation`): finite starting values, and once per ``data`` its indices,
+    observations and weights at the valid slots.
+    """
+    if isinstance(data, PointMapProblem) or isinstance(pose_tangent, PointMapProblem):
+        raise TypeError(
+            f"{fn}: got a PointMapProblem where tensors and its data are expected; pass "
+            "(problem.pose_tangent, problem.points, problem.data), or call "
+            "torchslam.solve(problem)"
+        )
+    if not isinstance(data, PointMapData):
+        raise TypeError(
+            f"{fn}: argument 'data' must be a torchslam.PointMapData (e.g. problem.data), got "
+            f"{_checks.describe(data)}"
+        )
+    B, m, n = data.valid.shape[0], data.num_poses, data.num_points
+    _checks.check_batched(
+        fn, "pose_tangent", pose_tangent, ("B", "m"), (6,), (B, m), against="'data'"
+    )
+    _checks.check_batched(fn, "points", points, ("B", "n"), (3,), (B, n), against="'data'")
+    _checks.check_same_kind(
+        fn, observations=data.observations, pose_tangent=pose_tangent, points=points
+    )
+    if m == 0:
+        raise ValueError(f"{fn}: 'data' has no poses (m = 0); there is nothing to solve")
+    if config is None:
+        config = SolverConfig()
+    elif not isinstance(config, SolverConfig):
+        raise TypeError(
+            f"{fn}: argument 'config' must be a torchslam.SolverConfig or None, got "
+            f"{_checks.describe(config)}; e.g. SolverConfig(algorithm='gauss_newton')"
+        )
+    if _checks.value_checks_active():
+        _checks.check_finite(fn, "pose_tangent", pose_tangent)
+        _checks.check_finite(fn, "points", points)
+        check_data_values(fn, data)
+    return config
+
+
+def _check_callback(fn: str, callback: object) -> None:
+    if callback is not None and not callable(callback):
+        raise TypeError(
+            f"{fn}: argument 'callback' must be callable or None, got {_checks.describe(callback)}"
+        )
 
 
 def retract(pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor]:
@@ -329,7 +387,19 @@ def solve_tensors(
         config: solver options; default :class:`SolverConfig()`.
         callback: called after every iteration with an :data:`IterationInfo` dict.
     """
-    config = config or SolverConfig()
+    config = check_solve_inputs("solve_tensors", pose_tangent, points, data, config)
+    _check_callback("solve_tensors", callback)
+    return _solve_tensors(pose_tangent, points, data, config, callback)
+
+
+def _solve_tensors(
+    pose_tangent: Tensor,
+    points: Tensor,
+    data: PointMapData,
+    config: SolverConfig,
+    callback: Callable[[IterationInfo], None] | None,
+) -> SolveResult:
+    """:func:`solve_tensors` after its argument checks."""
     start = time.perf_counter()
     count = [0]
 
@@ -379,7 +449,20 @@ def solve(
     Returns:
         A :class:`SolveResult` with per-problem status, reason, iterations, costs and history.
     """
-    result = solve_tensors(problem.pose_tangent, problem.points, problem.data, config, callback)
+    fn = "solve"
+    if isinstance(problem, PointMapData):
+        raise TypeError(
+            f"{fn}: argument 'problem' must be a torchslam.PointMapProblem, got a PointMapData; "
+            "solve tensors with torchslam.solve_tensors(pose_tangent, points, data)"
+        )
+    if not isinstance(problem, PointMapProblem):
+        raise TypeError(
+            f"{fn}: argument 'problem' must be a torchslam.PointMapProblem, got "
+            f"{_checks.describe(problem)}"
+        )
+    config = check_solve_inputs(fn, problem.pose_tangent, problem.points, problem.data, config)
+    _check_callback(fn, callback)
+    result = _solve_tensors(problem.pose_tangent, problem.points, problem.data, config, callback)
     with torch.no_grad():
         problem.pose_tangent.copy_(result.pose_tangent)
         problem.points.copy_(result.points)
