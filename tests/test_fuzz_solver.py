@@ -701,3 +701,59 @@ def test_jacobians_module_functions_check_arguments():
         jacobians.dense_jacobian(J_xi[:, :3], J_X, index, index, 2, 1)
     with pytest.raises(ValueError, match=r"dense_jacobian: 'num_points' must be an int"):
         jacobians.dense_jacobian(J_xi, J_X, index, index, 2, -1)
+
+
+def test_zero_weight_gradients_are_finite_or_refused_never_nan():
+    # A valid observation with weight exactly 0: its weight's gradient is finite (structured
+    # path, implicit backward) or refused with a clear error (unrolling the √w block path),
+    # never NaN.
+    from torchslam.data import make_scene
+    from torchslam.initialization import initialize_scene
+
+    scene = make_scene(4, 12, batch_size=1, noise_std=0.01, seed=3)
+    init = initialize_scene(scene, method="odometry")
+    w = torch.ones(scene.valid.shape, dtype=torch.float64)
+    w[0, scene.valid[0].nonzero()[0, 0]] = 0.0
+    w.requires_grad_(True)
+    cases = [
+        ("jacrev", "schur", "unrolled", False),
+        ("analytic", "dense", "unrolled", False),
+        ("analytic", "schur", "unrolled", True),
+        ("jacrev", "schur", "implicit", True),
+        ("analytic", "dense", "implicit", True),
+    ]
+    for jacobian, linear_solver, backward, allowed in cases:
+        problem = ts.PointMapProblem(
+            init.poses,
+            init.points,
+            scene.pose_index,
+            scene.point_index,
+            scene.observations,
+            valid=scene.valid,
+            weights=w,
+        )
+        config = ts.SolverConfig(jacobian=jacobian, linear_solver=linear_solver)
+
+        def run(problem=problem, config=config, backward=backward):
+            return solve_differentiable(
+                problem.pose_tangent.detach(),
+                problem.points.detach(),
+                problem.data,
+                config,
+                backward=backward,
+            )
+
+        if not allowed:
+            with pytest.raises(ValueError, match=r"solve_differentiable.*weight of exactly 0"):
+                run()
+            continue
+        (grad,) = torch.autograd.grad(run().poses.sum(), w)
+        assert torch.isfinite(grad).all()
+
+
+def test_solve_differentiable_rejects_a_non_config_implicit():
+    problem = _build(**_tiny())
+    with pytest.raises(TypeError, match=r"solve_differentiable.*'implicit'"):
+        solve_differentiable(
+            problem.pose_tangent, problem.points, problem.data, implicit={"hessian": "exact"}
+        )

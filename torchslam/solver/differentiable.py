@@ -233,6 +233,12 @@ def solve_differentiable(
                 "backward='implicit', which works with it)"
             )
         config = dataclasses.replace(config, reduced_solver="dense")
+        _check_zero_weights_unrolled(fn, data, config, backward)
+    if implicit is not None and not isinstance(implicit, ImplicitConfig):
+        raise TypeError(
+            f"{fn}: argument 'implicit' must be an ImplicitConfig or None, got "
+            f"{type(implicit).__name__}"
+        )
     implicit = implicit or ImplicitConfig()
 
     if backward == "none":
@@ -254,6 +260,33 @@ def solve_differentiable(
 
 # ------------------------------------------------------------------------------------------
 # Unrolled and truncated: the solver loop with autograd on
+
+
+def _check_zero_weights_unrolled(
+    fn: str, data: PointMapData, config: SolverConfig, backward: str
+) -> None:
+    """Refuse what would give a NaN gradient instead of returning it.
+
+    The general block linearization (``jacobian="jacrev"`` or ``linear_solver="dense"``)
+    whitens scalar weights by √w, whose derivative is infinite at w = 0: unrolling through it
+    gives NaN for the gradient of a valid observation's weight of exactly 0 (its true value
+    is finite). The structured path and the implicit backward use w itself and are exact.
+    """
+    weights = data.weights
+    if weights is None or not weights.requires_grad or not _checks.value_checks_active():
+        return
+    if config.jacobian == "analytic" and config.linear_solver == "schur":
+        return
+    zero = data.valid & (weights.detach() == 0)
+    if bool(zero.any()):
+        b, e = (int(i) for i in zero.nonzero()[0])
+        raise ValueError(
+            f"{fn}: backward={backward!r} with jacobian={config.jacobian!r} and "
+            f"linear_solver={config.linear_solver!r} cannot differentiate a weight of exactly 0 "
+            f"on a valid observation (problem {b}, observation {e}): the block path whitens by "
+            "√w. Use backward='implicit', or jacobian='analytic' with linear_solver='schur', "
+            "or mark the observation valid=False"
+        )
 
 
 def _run_truncated(
