@@ -16,8 +16,10 @@ Definitions (all batched over leading dims):
   i.e. E_i = T_{i,i+1}⁻¹ T̂_{i,i+1}; its rotation angle (degrees) and translation norm;
 - point error of point j: ‖X̂_j − X_j‖, summarized by its RMS over the points.
 
-The estimate is not value-checked, so a diverged estimate yields NaN errors rather than an
-exception; the ground truth is (rigid transforms, when validation is on).
+Both the estimate and the ground truth must be finite rigid transforms (checked when
+validation is on: a non-rigid estimate would yield wrong angles, a diverged one NaN errors),
+and points must be finite. Every pose sequence needs at least one pose (m ≥ 1); ``align="se3"``
+needs at least 3 non-collinear sensor positions per problem.
 """
 
 from __future__ import annotations
@@ -93,7 +95,7 @@ class TrajectoryErrors:
         return text
 
 
-def _check_pose_pair(fn: str, poses: Tensor, poses_gt: Tensor) -> None:
+def _check_pose_pair(fn: str, poses: Tensor, poses_gt: Tensor, *, min_poses: int = 0) -> None:
     _checks.check_tensor(fn, "poses", poses, (4, 4))
     _checks.check_tensor(fn, "poses_gt", poses_gt, (4, 4))
     _checks.check_same_kind(fn, poses=poses, poses_gt=poses_gt)
@@ -106,7 +108,43 @@ def _check_pose_pair(fn: str, poses: Tensor, poses_gt: Tensor) -> None:
             f"{fn}: 'poses' and 'poses_gt' must have the same shape (..., m, 4, 4), got "
             f"{tuple(poses.shape)} and {tuple(poses_gt.shape)}"
         )
+    if poses.shape[-3] < min_poses:
+        raise ValueError(
+            f"{fn}: arguments 'poses' and 'poses_gt' must hold at least {min_poses} pose(s) "
+            f"(m ≥ {min_poses}), got shape {tuple(poses.shape)}"
+        )
+    _checks.check_pose_matrix(fn, "poses", poses)
     _checks.check_pose_matrix(fn, "poses_gt", poses_gt)
+
+
+def _check_point_pair(fn: str, points: Tensor, points_gt: Tensor) -> None:
+    _checks.check_tensor(fn, "points", points, (3,))
+    _checks.check_tensor(fn, "points_gt", points_gt, (3,))
+    _checks.check_same_kind(fn, points=points, points_gt=points_gt)
+    if points.shape != points_gt.shape:
+        raise ValueError(
+            f"{fn}: 'points' and 'points_gt' must have the same shape (..., n, 3), got "
+            f"{tuple(points.shape)} and {tuple(points_gt.shape)}"
+        )
+    _checks.check_finite(fn, "points", points)
+    _checks.check_finite(fn, "points_gt", points_gt)
+
+
+def _alignment(fn: str, poses: Tensor, poses_gt: Tensor) -> Tensor:
+    """weighted_kabsch of the sensor positions, its errors rephrased for ``fn``."""
+    if poses.shape[-3] < 3:
+        raise ValueError(
+            f"{fn}: the SE(3) alignment needs at least 3 non-collinear sensor positions per "
+            f"problem; 'poses' and 'poses_gt' hold m = {poses.shape[-3]} pose(s), shape "
+            f"{tuple(poses.shape)}"
+        )
+    try:
+        return weighted_kabsch(_positions(poses), _positions(poses_gt))
+    except ValueError as error:  # the positions are finite here: only a degenerate layout
+        raise ValueError(
+            f"{fn}: the SE(3) alignment needs at least 3 non-collinear sensor positions per "
+            f"problem; those of 'poses' and 'poses_gt' are collinear or coincident ({error})"
+        ) from None
 
 
 def _rotation_angle_deg(R: Tensor) -> Tensor:
@@ -146,13 +184,13 @@ def absolute_trajectory_error(poses: Tensor, poses_gt: Tensor) -> Tensor:
     """ATE: RMSE of the sensor positions, sqrt(mean_i ‖ĉ_i − c_i‖²), no alignment.
 
     Args:
-        poses: estimated T̂_i0, shape (..., m, 4, 4).
+        poses: estimated T̂_i0, shape (..., m, 4, 4), m ≥ 1.
         poses_gt: ground-truth T_i0, same shape.
 
     Returns:
         ATE, shape (...,).
     """
-    _check_pose_pair("absolute_trajectory_error", poses, poses_gt)
+    _check_pose_pair("absolute_trajectory_error", poses, poses_gt, min_poses=1)
     return _ate(_pose_errors(poses, poses_gt)[1])
 
 
@@ -198,15 +236,7 @@ def point_errors(points: Tensor, points_gt: Tensor) -> Tensor:
     Returns:
         Errors, shape (..., n).
     """
-    fn = "point_errors"
-    _checks.check_tensor(fn, "points", points, (3,))
-    _checks.check_tensor(fn, "points_gt", points_gt, (3,))
-    _checks.check_same_kind(fn, points=points, points_gt=points_gt)
-    if points.shape != points_gt.shape:
-        raise ValueError(
-            f"{fn}: 'points' and 'points_gt' must have the same shape (..., n, 3), got "
-            f"{tuple(points.shape)} and {tuple(points_gt.shape)}"
-        )
+    _check_point_pair("point_errors", points, points_gt)
     return torch.linalg.vector_norm(points - points_gt, dim=-1)
 
 
@@ -214,8 +244,8 @@ def align_trajectories(poses: Tensor, poses_gt: Tensor) -> Tensor:
     """Rigid S minimizing Σ_i ‖c_i − S ĉ_i‖² over the sensor positions (Umeyama, no scale).
 
     Apply it as T̂_0i ← S T̂_0i, i.e. T̂_i0 ← T̂_i0 S⁻¹, and X̂ ← S X̂. Needs at least 3
-    non-collinear sensor positions (a ValueError from
-    :func:`torchslam.alignment.weighted_kabsch` otherwise, when validation is on).
+    non-collinear sensor positions (a ValueError otherwise; collinearity is checked when
+    validation is on).
 
     Args:
         poses: estimated T̂_i0, shape (..., m, 4, 4).
@@ -224,8 +254,9 @@ def align_trajectories(poses: Tensor, poses_gt: Tensor) -> Tensor:
     Returns:
         S, shape (..., 4, 4).
     """
-    _check_pose_pair("align_trajectories", poses, poses_gt)
-    return weighted_kabsch(_positions(poses), _positions(poses_gt))
+    fn = "align_trajectories"
+    _check_pose_pair(fn, poses, poses_gt)
+    return _alignment(fn, poses, poses_gt)
 
 
 def evaluate(
@@ -239,7 +270,7 @@ def evaluate(
     """All the metrics of the module docstring in one :class:`TrajectoryErrors`.
 
     Args:
-        poses: estimated T̂_i0, shape (..., m, 4, 4).
+        poses: estimated T̂_i0, shape (..., m, 4, 4), m ≥ 1 (m ≥ 3 for ``align="se3"``).
         poses_gt: ground-truth T_i0, same shape.
         points: estimated world points, shape (..., n, 3), or None.
         points_gt: ground-truth world points, same shape, or None (both or neither).
@@ -251,26 +282,28 @@ def evaluate(
         The :class:`TrajectoryErrors`.
     """
     fn = "evaluate"
-    _check_pose_pair(fn, poses, poses_gt)
+    _check_pose_pair(fn, poses, poses_gt, min_poses=1)
     if (points is None) != (points_gt is None):
         raise ValueError(f"{fn}: pass both 'points' and 'points_gt' or neither")
     if points is not None and points_gt is not None:
-        point_errors(points, points_gt)  # shape and dtype checks
+        _check_point_pair(fn, points, points_gt)
         _checks.check_same_kind(fn, poses=poses, points=points)
         if points.shape[:-2] != poses.shape[:-3]:
             raise ValueError(
                 f"{fn}: 'points' must have the batch dims of 'poses' {tuple(poses.shape[:-3])} "
                 f"in front of (n, 3), got {tuple(points.shape)}"
             )
+    if not isinstance(align, str) or align not in ("none", "se3"):
+        raise ValueError(
+            f"{fn}: argument 'align' must be 'none' or 'se3', got {_checks.describe(align)}"
+        )
     if align == "se3":
-        alignment = weighted_kabsch(_positions(poses), _positions(poses_gt))
+        alignment = _alignment(fn, poses, poses_gt)
         poses = poses @ se3._inverse(alignment)[..., None, :, :]
         if points is not None:
             points = se3._act(alignment[..., None, :, :], points)
-    elif align == "none":
-        alignment = None
     else:
-        raise ValueError(f"{fn}: argument 'align' must be 'none' or 'se3', got {align!r}")
+        alignment = None
 
     rotation, translation = _pose_errors(poses, poses_gt)
     ate = _ate(translation)
@@ -293,7 +326,7 @@ def evaluate(
         point_rmse=point_rmse,
         alignment=alignment,
         mean_rotation_error_deg=mean(rotation),
-        max_rotation_error_deg=float(rotation.detach().max()),
+        max_rotation_error_deg=float(rotation.detach().max()) if rotation.numel() else 0.0,
         mean_translation_error=mean(translation),
         mean_ate=mean(ate),
         mean_rpe_rotation_deg=mean(rpe_rotation),

@@ -62,6 +62,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam._checks import check_pose_matrix, check_tensor, describe
 from torchslam.io import _text
 from torchslam.lie import so3
 from torchslam.posegraph.graph import PoseGraph
@@ -361,13 +362,28 @@ def format_g2o(graph: PoseGraph, poses: Tensor | None = None) -> str:
 
     Returns:
         The file's text: vertices, then edges, then ``FIX`` lines, one item per line.
+
+    Raises:
+        TypeError: ``graph`` is not a :class:`PoseGraph`, ``poses`` not a float tensor.
+        ValueError: ``poses`` of another shape than ``graph.poses``, or (when validation is on)
+            not finite rigid transforms.
     """
-    poses = graph.poses if poses is None else poses
-    if tuple(poses.shape) != tuple(graph.poses.shape):
-        raise ValueError(
-            f"format_g2o: argument 'poses' must have shape {tuple(graph.poses.shape)}, "
-            f"got {tuple(poses.shape)}"
-        )
+    return _format_g2o("format_g2o", graph, poses)
+
+
+def _format_g2o(fn: str, graph: PoseGraph, poses: Tensor | None) -> str:
+    if not isinstance(graph, PoseGraph):
+        raise TypeError(f"{fn}: argument 'graph' must be a PoseGraph, got {describe(graph)}")
+    if poses is None:
+        poses = graph.poses
+    else:
+        check_tensor(fn, "poses", poses, (4, 4))
+        if tuple(poses.shape) != tuple(graph.poses.shape):
+            raise ValueError(
+                f"{fn}: argument 'poses' must have shape {tuple(graph.poses.shape)} (one pose "
+                f"per vertex of 'graph'), got {tuple(poses.shape)}"
+            )
+        check_pose_matrix(fn, "poses", poses)
     T = poses.detach().cpu().to(torch.float64)
     Z = graph.measurements.detach().cpu().to(torch.float64)
     information = graph.information.detach().cpu().to(torch.float64).numpy()
@@ -415,5 +431,14 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph, poses: Tensor | No
         path: the file to create or overwrite.
         graph: the graph to write.
         poses: vertex poses to write instead of ``graph.poses``, shape (N, 4, 4).
+
+    Raises:
+        TypeError, ValueError: as :func:`format_g2o` (naming ``write_g2o``), or a ``path``
+            that is not a str or path-like; nothing is written then.
+        OSError: the file cannot be written.
     """
-    Path(path).write_text(format_g2o(graph, poses))
+    fn = "write_g2o"
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"{fn}: argument 'path' must be a str or os.PathLike, got {describe(path)}")
+    text = _format_g2o(fn, graph, poses)
+    Path(path).write_text(text)

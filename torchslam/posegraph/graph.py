@@ -31,6 +31,12 @@ class PoseGraph:
     Vertices are stored sorted by id, so that index k is the k-th smallest id; ``edges`` hold
     indices into ``poses`` (not ids). 2D (SE(2)) graphs are lifted into SE(3) with z = 0 (see
     :mod:`torchslam.io.g2o` for the rule); ``dimension`` remembers which file type they came from.
+
+    Construction checks the types and shapes below (TypeError/ValueError naming ``PoseGraph``
+    and the field) and, when validation is on (:func:`torchslam._checks.value_checks_active`),
+    the values: ``ids`` strictly increasing, ``edges`` and ``fixed`` in [0, N), ``poses`` and
+    ``measurements`` finite rigid transforms, ``information`` finite, symmetric and positive
+    semidefinite (relative tolerances; the solver needs positive definite ones).
     """
 
     # Vertex ids as in the file, ascending, shape (N,), int64.
@@ -69,6 +75,10 @@ class PoseGraph:
                 raise ValueError(
                     f"{fn}: argument '{name}' must have shape {shape}, got {tuple(value.shape)}"
                 )
+        if self.fixed.dim() != 1:
+            raise ValueError(
+                f"{fn}: argument 'fixed' must have shape (F,), got {tuple(self.fixed.shape)}"
+            )
         if self.poses.dim() != 3 or self.measurements.dim() != 3 or self.information.dim() != 3:
             raise ValueError(
                 f"{fn}: 'poses', 'measurements' and 'information' must have shapes (N, 4, 4), "
@@ -80,8 +90,32 @@ class PoseGraph:
                 f"{fn}: 'information' has {self.information.shape[0]} edges but "
                 f"'measurements' has {self.measurements.shape[0]}"
             )
+        if n == 0:
+            raise ValueError(f"{fn}: argument 'poses' must hold at least one vertex, got (0, 4, 4)")
+        if not isinstance(self.dimension, int) or isinstance(self.dimension, bool):
+            raise TypeError(
+                f"{fn}: argument 'dimension' must be the int 2 or 3, got "
+                f"{_checks.describe(self.dimension)}"
+            )
         if self.dimension not in (2, 3):
             raise ValueError(f"{fn}: 'dimension' must be 2 or 3, got {self.dimension}")
+        if not _checks.value_checks_active():
+            return
+        ids = self.ids.detach()
+        decreasing = ~(ids[1:] > ids[:-1])
+        if bool(decreasing.any()):
+            k = int(decreasing.nonzero()[0, 0])
+            raise ValueError(
+                f"{fn}: argument 'ids' must be strictly increasing (vertices are stored sorted "
+                f"by id, and 'edges' index them); got ids[{k}] = {int(ids[k])} followed by "
+                f"ids[{k + 1}] = {int(ids[k + 1])}: sort the vertices (and renumber the edges) "
+                "or remove the duplicate"
+            )
+        check_vertex_indices(fn, "edges", self.edges, n)
+        check_vertex_indices(fn, "fixed", self.fixed, n)
+        _checks.check_pose_matrix(fn, "poses", self.poses)
+        _checks.check_pose_matrix(fn, "measurements", self.measurements)
+        check_information(fn, "information", self.information, "edge")
 
     @property
     def num_vertices(self) -> int:
@@ -117,5 +151,83 @@ class PoseGraph:
         return RelativePoseTerm(self.edges, self.measurements, information=self.information)
 
     def with_poses(self, poses: Tensor) -> PoseGraph:
-        """A copy of the graph with new vertex poses (N, 4, 4); everything else is shared."""
-        return dataclasses.replace(self, poses=poses)
+        """A copy of the graph with new vertex poses (N, 4, 4); everything else is shared.
+
+        ``poses`` must have the shape, dtype and device of ``self.poses`` and hold rigid
+        transforms (checked when validation is on).
+        """
+        fn = "PoseGraph.with_poses"
+        _checks.check_tensor(fn, "poses", poses, (4, 4))
+        if tuple(poses.shape) != tuple(self.poses.shape):
+            raise ValueError(
+                f"{fn}: argument 'poses' must have shape {tuple(self.poses.shape)} (one pose per "
+                f"vertex), got {tuple(poses.shape)}"
+            )
+        _checks.check_same_kind(fn, poses=poses, measurements=self.measurements)
+        _checks.check_pose_matrix(fn, "poses", poses)
+        # Everything else was checked when this graph was built.
+        with _checks.validation(False):
+            return dataclasses.replace(self, poses=poses)
+
+
+# Relative tolerances of the information checks. An asymmetry |Ω − Ωᵀ| up to this multiple of
+# max|Ω| is round-off (Ω = inv(Σ) computed in floating point is symmetric to ~cond(Σ)·eps: the
+# float64 bound admits cond(Σ) up to ~1e7). A negative eigenvalue down to −(multiple) · max|λ|
+# is round-off too (a singular PSD matrix written with 17 digits, or cast to float32, has
+# eigenvalues of a few ulps of its scale around 0), as in torchslam.io.g2o's reader.
+_SYMMETRY_TOLERANCE = {torch.float64: 1e-8, torch.float32: 1e-4}
+_PSD_TOLERANCE = {torch.float64: 1e-9, torch.float32: 1e-5}
+
+
+def check_vertex_indices(fn: str, name: str, index: Tensor, num_vertices: int) -> None:
+    """Raise ValueError unless the int64 tensor ``index`` holds indices in [0, num_vertices).
+
+    Only when value checks are active (it needs a host sync). Negative indices are refused
+    (torch would wrap them silently to the last vertices).
+    """
+    if not _checks.value_checks_active() or index.numel() == 0:
+        return
+    bad = (index < 0) | (index >= num_vertices)
+    if bool(bad.any()):
+        where = tuple(int(i) for i in bad.nonzero()[0].tolist())
+        row = index[where[0]].tolist() if index.dim() == 2 else int(index[where])
+        label = f"{name}[{where[0]}] = {row}"
+        raise ValueError(
+            f"{fn}: argument '{name}' must hold vertex indices in [0, {num_vertices}) "
+            f"(positions in 'poses', not vertex ids), got {label}"
+        )
+
+
+def check_information(fn: str, name: str, information: Tensor, item: str) -> None:
+    """Raise ValueError unless the (K, k, k) ``information`` matrices are finite, symmetric
+    (relative tolerance) and positive semidefinite; the message names ``item`` k (e.g. "edge").
+
+    Only when value checks are active (eigenvalues and a host sync).
+    """
+    _checks.check_finite(fn, name, information)
+    if not _checks.value_checks_active() or information.numel() == 0:
+        return
+    omega = information.detach().to(torch.float64)
+    scale = omega.abs().amax(dim=(-2, -1))
+    safe = torch.where(scale > 0, scale, torch.ones_like(scale))[:, None, None]
+    omega = omega / safe  # entries in [-1, 1]: no overflow below
+    asymmetry = (omega - omega.transpose(-1, -2)).abs().amax(dim=(-2, -1))
+    tolerance = _SYMMETRY_TOLERANCE[information.dtype]
+    bad = asymmetry > tolerance
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"{fn}: argument '{name}' must hold symmetric matrices; {item} {k} has "
+            f"max|Ω − Ωᵀ| = {float(asymmetry[k] * scale[k]):.3g} relative to max|Ω| = "
+            f"{float(scale[k]):.3g} (tolerance {tolerance:g} relative)"
+        )
+    eigenvalues = torch.linalg.eigvalsh(0.5 * (omega + omega.transpose(-1, -2)))
+    largest = eigenvalues.abs().amax(dim=-1)
+    bad = eigenvalues[:, 0] < -_PSD_TOLERANCE[information.dtype] * largest
+    if bool(bad.any()):
+        k = int(bad.nonzero()[0, 0])
+        raise ValueError(
+            f"{fn}: argument '{name}' must hold positive semidefinite matrices; {item} {k} "
+            f"has the eigenvalue {float(eigenvalues[k, 0] * scale[k]):.6g} (largest magnitude "
+            f"{float(largest[k] * scale[k]):.6g})"
+        )

@@ -15,9 +15,17 @@ import scipy.sparse.linalg
 import torch
 from torch import Tensor
 
+from torchslam import _checks
 from torchslam.posegraph.graph import PoseGraph
 
 __all__ = ["chordal_initialization", "odometry_initialization"]
+
+
+def _check_graph(fn: str, graph: object) -> None:
+    if not isinstance(graph, PoseGraph):
+        raise TypeError(
+            f"{fn}: argument 'graph' must be a PoseGraph, got {_checks.describe(graph)}"
+        )
 
 
 def odometry_initialization(graph: PoseGraph) -> Tensor:
@@ -36,6 +44,7 @@ def odometry_initialization(graph: PoseGraph) -> Tensor:
     Raises:
         ValueError: when some consecutive pair of vertices has no edge (the chain is broken).
     """
+    _check_graph("odometry_initialization", graph)
     n = graph.num_vertices
     edges = graph.edges.cpu().numpy()
     Z = graph.measurements.detach().cpu().to(torch.float64).numpy()
@@ -96,8 +105,11 @@ def chordal_initialization(graph: PoseGraph) -> Tensor:
         Poses, shape (N, 4, 4).
 
     Raises:
-        ValueError: when the graph is not connected.
+        ValueError: when the graph is not connected, or when the rotation or translation block
+            of an edge's information is not positive definite.
     """
+    fn = "chordal_initialization"
+    _check_graph(fn, graph)
     n, num_edges = graph.num_vertices, graph.num_edges
     if n == 1:
         return graph.poses.detach().clone()
@@ -112,7 +124,15 @@ def chordal_initialization(graph: PoseGraph) -> Tensor:
             f"{int(graph.ids[other])} is not connected to vertex id {int(graph.ids[0])}"
         )
     Z = graph.measurements.detach().cpu().to(torch.float64).numpy()
-    information = graph.information.detach().cpu().to(torch.float64).numpy()
+    information = graph.information.detach().cpu().to(torch.float64)
+    blocks = torch.stack((information[:, :3, :3], information[:, 3:, 3:]), dim=1)
+    bad = (torch.linalg.cholesky_ex(blocks)[1] > 0).any(-1)
+    if bool(bad.any()):
+        raise ValueError(
+            f"{fn}: the weights need positive-definite rotation and translation blocks of the "
+            f"information; those of edge {int(bad.nonzero()[0, 0])} are not"
+        )
+    information = information.numpy()
     T0 = graph.poses[0].detach().cpu().to(torch.float64).numpy()
     rows3 = 3 * np.arange(num_edges)[:, None, None] + np.arange(3)[None, :, None]  # (E, 3, 1)
 

@@ -30,12 +30,29 @@ from torchslam.posegraph.graph import PoseGraph
 __all__ = ["edge_residuals", "sesync_objective", "sesync_weights", "standard_cost"]
 
 
-def _graph_poses(fn: str, graph: PoseGraph, poses: Tensor | None) -> Tensor:
+def _graph_poses(fn: str, graph: PoseGraph, poses: Tensor | None, *, rigid: bool = True) -> Tensor:
+    if not isinstance(graph, PoseGraph):
+        raise TypeError(
+            f"{fn}: argument 'graph' must be a PoseGraph, got {_checks.describe(graph)}"
+        )
     if poses is None:
         return graph.poses
     _checks.check_tensor(fn, "poses", poses, (graph.num_vertices, 4, 4))
     _checks.check_same_kind(fn, poses=poses, measurements=graph.measurements)
+    if rigid:
+        _checks.check_pose_matrix(fn, "poses", poses)
+    else:
+        _checks.check_finite(fn, "poses", poses)
     return poses
+
+
+def _first_not_positive_definite(information: Tensor) -> int | None:
+    """Index of the first (K, 6, 6) matrix whose rotation block Ω_RR or translation block Ω_tt
+    is not positive definite (Cholesky fails), or None."""
+    blocks = torch.stack((information[..., :3, :3], information[..., 3:, 3:]), dim=-3)
+    _, info = torch.linalg.cholesky_ex(blocks.detach().reshape(-1, 2, 3, 3))
+    bad = (info > 0).any(-1)
+    return int(bad.nonzero()[0, 0]) if bool(bad.any()) else None
 
 
 def edge_residuals(graph: PoseGraph, poses: Tensor | None = None) -> Tensor:
@@ -49,6 +66,10 @@ def edge_residuals(graph: PoseGraph, poses: Tensor | None = None) -> Tensor:
         Residuals, shape (..., E, 6).
     """
     T = _graph_poses("edge_residuals", graph, poses)
+    return _edge_residuals(graph, T)
+
+
+def _edge_residuals(graph: PoseGraph, T: Tensor) -> Tensor:
     i, j = graph.edges[:, 0], graph.edges[:, 1]
     return _between(T[..., i, :, :], T[..., j, :, :], graph.measurements)
 
@@ -63,7 +84,7 @@ def standard_cost(graph: PoseGraph, poses: Tensor | None = None) -> Tensor:
     Returns:
         Costs, shape (...) (a 0-dim tensor for a single set of poses).
     """
-    r = edge_residuals(graph, _graph_poses("standard_cost", graph, poses))
+    r = _edge_residuals(graph, _graph_poses("standard_cost", graph, poses))
     return weighted_cost(r, graph.information).sum(-1)
 
 
@@ -79,7 +100,19 @@ def sesync_weights(information: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         ``(kappa, tau)``, each of shape (...).
     """
-    _checks.check_tensor("sesync_weights", "information", information, (6, 6))
+    fn = "sesync_weights"
+    _checks.check_tensor(fn, "information", information, (6, 6))
+    _checks.check_finite(fn, "information", information)
+    if _checks.value_checks_active() and information.numel():
+        bad = _first_not_positive_definite(information)
+        if bad is not None:
+            index = tuple(
+                int(i) for i in torch.unravel_index(torch.tensor(bad), information.shape[:-2])
+            )
+            raise ValueError(
+                f"{fn}: argument 'information' must have positive-definite rotation and "
+                f"translation blocks (Ω[:3, :3], Ω[3:, 3:]); at batch index {index} one is not"
+            )
     trace_RR = torch.linalg.inv(information[..., :3, :3]).diagonal(dim1=-2, dim2=-1).sum(-1)
     trace_tt = torch.linalg.inv(information[..., 3:, 3:]).diagonal(dim1=-2, dim2=-1).sum(-1)
     return 3.0 / (2.0 * trace_RR), 3.0 / trace_tt
@@ -91,12 +124,20 @@ def sesync_objective(graph: PoseGraph, poses: Tensor | None = None) -> Tensor:
     Args:
         graph: the pose graph (edges, measurements, information in (ω, v) order).
         poses: vertex poses to evaluate, shape (..., N, 4, 4); ``graph.poses`` when None.
-            Rotations are used as given (not projected onto SO(3)).
+            Rotations are used as given (not projected onto SO(3)); they must be finite.
 
     Returns:
         Objective values, shape (...).
     """
-    T = _graph_poses("sesync_objective", graph, poses)
+    fn = "sesync_objective"
+    T = _graph_poses(fn, graph, poses, rigid=False)
+    if _checks.value_checks_active() and graph.information.numel():
+        bad = _first_not_positive_definite(graph.information)
+        if bad is not None:
+            raise ValueError(
+                f"{fn}: the SE-Sync weights need positive-definite rotation and translation "
+                f"blocks of 'graph.information'; those of edge {bad} are not"
+            )
     kappa, tau = sesync_weights(graph.information)
     i, j = graph.edges[:, 0], graph.edges[:, 1]
     R_i, R_j = T[..., i, :3, :3], T[..., j, :3, :3]

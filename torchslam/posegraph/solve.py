@@ -65,7 +65,8 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.posegraph import between
-from torchslam.posegraph.graph import PoseGraph
+from torchslam.posegraph.graph import PoseGraph, check_information, check_vertex_indices
+from torchslam.solver.config import check_int, check_number
 from torchslam.solver.result import REASONS, Status
 from torchslam.solver.sparse import fill_reducing_order
 
@@ -138,12 +139,14 @@ class PoseGraphSolverConfig:
             ("ordering", _ORDERINGS),
         ):
             value = getattr(self, name)
-            if value not in allowed:
-                raise ValueError(f"{fn}: '{name}' must be one of {allowed}, got {value!r}")
+            if not isinstance(value, str) or value not in allowed:
+                raise ValueError(
+                    f"{fn}: '{name}' must be one of {allowed}, got {_checks.describe(value)}"
+                )
         for name in ("max_iterations", "dense_max_variables"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"{fn}: '{name}' must be an int ≥ 0, got {value!r}")
+            object.__setattr__(self, name, check_int(fn, name, getattr(self, name), 0))
+        # Every real option is a finite number ≥ 0 (an infinite λ or tolerance stops nothing
+        # or everything at once).
         for name in (
             "function_tolerance",
             "gradient_tolerance",
@@ -152,9 +155,17 @@ class PoseGraphSolverConfig:
             "max_lambda",
             "min_lambda",
         ):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"{fn}: '{name}' must be a number ≥ 0, got {value!r}")
+            object.__setattr__(self, name, check_number(fn, name, getattr(self, name), 0.0, True))
+        if self.min_lambda > self.max_lambda:
+            raise ValueError(
+                f"{fn}: 'min_lambda' ({self.min_lambda!r}) must not exceed 'max_lambda' "
+                f"({self.max_lambda!r})"
+            )
+        if self.initial_lambda > self.max_lambda:
+            raise ValueError(
+                f"{fn}: 'initial_lambda' ({self.initial_lambda!r}) must not exceed 'max_lambda' "
+                f"({self.max_lambda!r})"
+            )
 
 
 @dataclass(frozen=True)
@@ -189,6 +200,16 @@ class PosePriors:
                 f"(P, 4, 4), (P, 6, 6); got {tuple(self.indices.shape)}, "
                 f"{tuple(self.poses.shape)}, {tuple(self.information.shape)}"
             )
+        check_information(fn, "information", self.information, "prior")
+        _checks.check_pose_matrix(fn, "poses", self.poses)
+        if _checks.value_checks_active() and self.indices.numel():
+            negative = self.indices < 0
+            if bool(negative.any()):
+                p = int(negative.nonzero()[0, 0])
+                raise ValueError(
+                    f"{fn}: argument 'indices' must hold vertex indices ≥ 0 (positions in the "
+                    f"graph's poses), got indices[{p}] = {int(self.indices[p])}"
+                )
 
     @property
     def num_priors(self) -> int:
@@ -575,11 +596,24 @@ def _nielsen(
 
 
 def _check_inputs(
-    graph: PoseGraph, poses: Tensor, priors: PosePriors | None, fixed: Tensor
+    graph: PoseGraph,
+    poses: Tensor,
+    priors: PosePriors | None,
+    fixed: Tensor,
+    config: PoseGraphSolverConfig,
+    callback: object,
 ) -> None:
     fn = "solve_pose_graph"
-    if not isinstance(graph, PoseGraph):
-        raise TypeError(f"{fn}: argument 'graph' must be a PoseGraph, got {type(graph).__name__}")
+    if not isinstance(config, PoseGraphSolverConfig):
+        raise TypeError(
+            f"{fn}: argument 'config' must be a PoseGraphSolverConfig or None, got "
+            f"{_checks.describe(config)}"
+        )
+    if callback is not None and not callable(callback):
+        raise TypeError(
+            f"{fn}: argument 'callback' must be callable (called with an IterationInfo dict "
+            f"after every iteration) or None, got {_checks.describe(callback)}"
+        )
     N = graph.num_vertices
     _checks.check_tensor(fn, "poses", poses, (N, 4, 4), min_batch_dims=0)
     if poses.dim() != 3:
@@ -589,11 +623,12 @@ def _check_inputs(
     _checks.check_same_kind(fn, poses=poses, measurements=graph.measurements)
     _checks.check_pose_matrix(fn, "poses", poses)
     _checks.check_tensor(fn, "fixed", fixed, floating=False)
-    if fixed.dtype != torch.int64 or fixed.dim() != 1:
-        raise ValueError(
-            f"{fn}: argument 'fixed' must be an int64 tensor of shape (F,), got "
-            f"{fixed.dtype} {tuple(fixed.shape)}"
-        )
+    if fixed.dtype != torch.int64:
+        raise TypeError(f"{fn}: argument 'fixed' must be an int64 tensor, got {fixed.dtype}")
+    if fixed.dim() != 1:
+        raise ValueError(f"{fn}: argument 'fixed' must have shape (F,), got {tuple(fixed.shape)}")
+    # The graph checked its edges when it was built, unless validation was off then.
+    check_vertex_indices(fn, "graph.edges", graph.edges, N)
     indices = [("fixed", fixed)]
     if priors is not None:
         if not isinstance(priors, PosePriors):
@@ -614,6 +649,27 @@ def _check_inputs(
             f"{fn}: the gauge is free: no vertex is fixed and there are no priors; fix a "
             "vertex (argument 'fixed') or add a PosePriors"
         )
+
+
+def _sqrt_information(graph: PoseGraph, priors: PosePriors | None) -> Tensor:
+    """U with UᵀU = Ω for the edges and then the priors, (E + P, 6, 6); ValueError naming the
+    first edge or prior whose information is not positive definite (when validation is on)."""
+    information = graph.information.detach()
+    if priors is not None:
+        information = torch.cat((information, priors.information.detach()))
+    L, info = torch.linalg.cholesky_ex(information)
+    if _checks.value_checks_active() and information.numel() > 0 and bool((info > 0).any()):
+        k = int((info > 0).nonzero()[0, 0])
+        where = (
+            f"'graph.information' of edge {k}"
+            if k < graph.num_edges
+            else f"'priors.information' of prior {k - graph.num_edges}"
+        )
+        raise ValueError(
+            f"solve_pose_graph: the information matrices must be symmetric positive definite "
+            f"(Cholesky factorization); {where} is not (a singular or indefinite matrix)"
+        )
+    return L.transpose(-1, -2)
 
 
 def solve_pose_graph(
@@ -648,18 +704,19 @@ def solve_pose_graph(
         ValueError, TypeError: for inconsistent shapes, dtypes, indices, non-positive-definite
             information, or a free gauge. Non-convergence is reported by ``status``.
     """
-    config = config or PoseGraphSolverConfig()
+    if not isinstance(graph, PoseGraph):
+        raise TypeError(
+            f"solve_pose_graph: argument 'graph' must be a PoseGraph, got {_checks.describe(graph)}"
+        )
+    config = PoseGraphSolverConfig() if config is None else config
     poses = graph.poses if poses is None else poses
     if fixed is None:
         fixed = graph.fixed if graph.fixed.numel() else graph.edges.new_zeros(1)
-    _check_inputs(graph, poses, priors, fixed)
+    _check_inputs(graph, poses, priors, fixed, config, callback)
     start = time.perf_counter()
     linearize_seconds = solve_seconds = 0.0
     with torch.no_grad():
-        information = graph.information.detach()
-        if priors is not None:
-            information = torch.cat((information, priors.information.detach()))
-        U = between.sqrt_information(information)  # raises on a non-SPD matrix
+        U = _sqrt_information(graph, priors)  # raises on a non-SPD matrix
     with torch.no_grad(), _checks.validation(False):
         T = poses.detach().clone()
         N = graph.num_vertices
