@@ -282,9 +282,9 @@ def test_status_and_reasons(generator, true_transform):
 
 def test_input_validation():
     cloud = torch.zeros(10, 3, dtype=F64)
-    with pytest.raises(ValueError, match="icp_batch: argument 'source' must have shape"):
+    with pytest.raises(ValueError, match="icp: argument 'source' must have shape"):
         icp.icp(torch.zeros(10, 2, dtype=F64), cloud)
-    with pytest.raises(TypeError, match=r"icp_batch: 'source' is torch.float64 but 'target'"):
+    with pytest.raises(TypeError, match=r"icp: 'source' is torch.float64 but 'target'"):
         icp.icp(cloud, cloud.float())
     with pytest.raises(ValueError, match="icp: argument 'initial' must have shape \\(4, 4\\)"):
         icp.icp(cloud, cloud, torch.eye(4, dtype=F64)[None])

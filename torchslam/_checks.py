@@ -352,3 +352,141 @@ def check_batched(
                 f"{source}, got {got}"
             )
     return x
+
+
+# --------------------------------------------------------------------------------------------
+# Point clouds and scalar arguments (fix-icp branch): numpy/torch clouds at the boundary of the
+# ICP front end (icp, alignment, tracks), and plain numbers (ints, reals) in configs.
+# --------------------------------------------------------------------------------------------
+
+
+def first_tensor(*values: object) -> Tensor | None:
+    """The first torch tensor among ``values`` (the device numpy arguments are moved to)."""
+    for value in values:
+        if isinstance(value, Tensor):
+            return value
+    return None
+
+
+def from_numpy(x: object, like: Tensor | None = None) -> object:
+    """A numpy array as a (copied) tensor on ``like``'s device; anything else unchanged.
+
+    Float arrays keep their precision (float32 stays float32, float64 stays float64; foreign
+    byte orders are converted), so mixing float32 and float64 still meets the dtype checks.
+    """
+    import numpy as np
+
+    if not isinstance(x, np.ndarray):
+        return x
+    dtype = x.dtype.newbyteorder("=") if x.dtype.byteorder not in ("=", "|") else x.dtype
+    copied = np.array(x, dtype=dtype, order="C", copy=True)
+    tensor = torch.from_numpy(copied)
+    return tensor if like is None else tensor.to(like.device)
+
+
+def as_points(
+    fn: str,
+    name: str,
+    x: object,
+    *,
+    like: Tensor | None = None,
+    cloud: bool = True,
+    min_points: int = 0,
+    finite: bool | None = None,
+) -> Tensor:
+    """Check a point array and return it as a tensor (numpy float arrays are accepted).
+
+    Args:
+        fn, name: function and argument names for the messages.
+        x: a torch tensor or a numpy array, float32 or float64.
+        like: a tensor whose device a numpy array is moved to.
+        cloud: require shape (N, 3) exactly; otherwise (..., 3).
+        min_points: smallest N (the size of dim −2) for a cloud.
+        finite: refuse NaN/Inf always (True: host-bound code such as KD-trees), only when
+            value checks are active (None), or never (False).
+    """
+    import numpy as np
+
+    if not isinstance(x, (Tensor, np.ndarray)):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a torch.Tensor or a numpy array of points, "
+            f"got {describe(x)}"
+        )
+    if isinstance(x, np.ndarray) and (x.dtype.kind != "f" or x.dtype.itemsize not in (4, 8)):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be float32 or float64, got a numpy array of "
+            f"dtype {x.dtype}"
+        )
+    tensor = from_numpy(x, like)
+    assert isinstance(tensor, Tensor)
+    check_tensor(fn, name, tensor, (3,))
+    if cloud and (tensor.dim() != 2 or tensor.shape[0] < min_points):
+        at_least = f" with N ≥ {min_points}" if min_points > 0 else ""
+        raise ValueError(
+            f"{fn}: argument '{name}' must have shape (N, 3){at_least}, got {tuple(tensor.shape)}"
+        )
+    if finite or (finite is None and value_checks_active()):
+        bad = ~torch.isfinite(tensor.detach())
+        if bool(bad.any()):
+            first = tuple(int(i) for i in bad.nonzero()[0].tolist())
+            raise ValueError(
+                f"{fn}: argument '{name}' contains {int(bad.sum())} non-finite value(s) "
+                f"(NaN or Inf), first at index {first}"
+            )
+    return tensor
+
+
+def int_argument(
+    fn: str, name: str, value: object, *, minimum: int | None = None, maximum: int | None = None
+) -> int:
+    """An integer argument (ints, numpy integers; not bools or floats) within [min, max]."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        number = operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise TypeError(f"{fn}: argument '{name}' must be an int, got {describe(value)}") from None
+    if (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
+        if maximum is None:
+            wanted = f">= {minimum}"
+        elif minimum is None:
+            wanted = f"<= {maximum}"
+        else:
+            wanted = f"in [{minimum}, {maximum}]"
+        raise ValueError(f"{fn}: argument '{name}' must be {wanted} (an int), got {number}")
+    return number
+
+
+def real_argument(
+    fn: str,
+    name: str,
+    value: object,
+    *,
+    minimum: float | None = None,
+    strict: bool = False,
+    maximum: float | None = None,
+    allow_inf: bool = False,
+) -> float:
+    """A real argument (ints, floats, numpy scalars; not bools, strings or tensors): not NaN,
+    finite unless ``allow_inf``, > ``minimum`` (``strict``) or ≥ it, and ≤ ``maximum``."""
+    import math
+    import numbers
+
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{fn}: argument '{name}' must be a real number, got {describe(value)}")
+    number = float(value)
+    parts = []
+    if minimum is not None:
+        parts.append(f"{'>' if strict else '>='} {minimum:g}")
+    if maximum is not None:
+        parts.append(f"<= {maximum:g}")
+    kind = "a finite number" if not allow_inf else "a number, inf allowed"
+    wanted = f"{' and '.join(parts)} ({kind})" if parts else kind
+    ok = not math.isnan(number) and (allow_inf or math.isfinite(number))
+    if ok and minimum is not None:
+        ok = number > minimum if strict else number >= minimum
+    if ok and maximum is not None:
+        ok = number <= maximum
+    if not ok:
+        raise ValueError(f"{fn}: argument '{name}' must be {wanted}, got {describe(value)}")
+    return number

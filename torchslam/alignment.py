@@ -80,12 +80,19 @@ def weighted_kabsch(
     differentiable w.r.t. ``source``, ``target`` and ``weights`` wherever the singular values
     of the cross-covariance are distinct (generic, non-degenerate input).
 
+    The arithmetic is scale-free (the rotation does not change when the weights or either
+    centred cloud are multiplied by a positive constant), so every problem is normalized by
+    its largest weight and coordinate before the cross-covariance is formed: huge (1e300) and
+    tiny (1e-300) finite coordinates and weights neither overflow nor underflow.
+
     Args:
-        source: points in the source frame, shape (..., N, 3).
-        target: corresponding points in the target frame, shape (..., N, 3).
+        source: points in the source frame, shape (..., N, 3); a torch tensor or a numpy
+            array (float32/float64, converted to a tensor on ``target``'s device).
+        target: corresponding points in the target frame, shape (..., N, 3), same dtype.
         weights: non-negative weights w_k, shape broadcastable to (..., N); ``None`` means 1.
         mask: bool, shape broadcastable to (..., N); ``False`` entries (padding) are ignored
-            entirely (their coordinates may hold anything, NaN included). ``None`` keeps all.
+            entirely (their coordinates and weights may hold anything, NaN included).
+            ``None`` keeps all.
 
     Returns:
         T = [[R, t], [0, 1]] mapping source coordinates to target coordinates,
@@ -94,13 +101,16 @@ def weighted_kabsch(
     Raises:
         ValueError: on shape mismatches; and, when value checks are active (eager mode,
             validation on), if a problem has fewer than 3 points with positive weight, if a
-            weight is negative, if a kept coordinate is not finite, or if the kept points are
-            degenerate (collinear or coincident: the rotation is not unique).
+            kept weight is negative or not finite, if a kept coordinate is not finite, or if
+            the kept points are degenerate (collinear or coincident: the rotation is not
+            unique).
         TypeError: on non-float or mixed dtypes, or a non-bool ``mask``.
     """
     fn = "weighted_kabsch"
+    like = _checks.first_tensor(source, target)
+    source = _checks.as_points(fn, "source", source, like=like, cloud=False, finite=False)
+    target = _checks.as_points(fn, "target", target, like=like, cloud=False, finite=False)
     for name, x in (("source", source), ("target", target)):
-        _checks.check_tensor(fn, name, x, (3,))
         if x.dim() < 2:
             raise ValueError(
                 f"{fn}: argument '{name}' must have shape (..., N, 3), got {tuple(x.shape)}"
@@ -111,6 +121,8 @@ def weighted_kabsch(
             f"{fn}: 'source' and 'target' must have the same shape (..., N, 3), got "
             f"{tuple(source.shape)} and {tuple(target.shape)}"
         )
+    weights = _checks.from_numpy(weights, source)  # type: ignore[assignment]
+    mask = _checks.from_numpy(mask, source)  # type: ignore[assignment]
     points_shape = source.shape[:-1]
     keep = torch.ones(points_shape, dtype=torch.bool, device=source.device)
     if mask is not None:
@@ -142,6 +154,12 @@ def weighted_kabsch(
                 f"coincident; singular values of the cross-covariance {S[idx].tolist()}), so "
                 "the rotation is not unique"
             )
+        if not bool(torch.isfinite(T.detach()).all()):
+            raise ValueError(
+                f"{fn}: the translation t = μ_target − R μ_source overflows "
+                f"{source.dtype}: the kept coordinates of 'source' and 'target' are too large "
+                "in magnitude"
+            )
     return T
 
 
@@ -164,18 +182,22 @@ def _check_values(
         kept = torch.where(keep[..., None], x.detach(), torch.zeros_like(x.detach()))
         _checks.check_finite(fn, name, kept)
     if weights is not None:
-        _checks.check_finite(fn, "weights", weights)
-        negative = weights.detach() < 0
+        # Only the kept entries count: ``w`` already holds 0 where ``mask`` is False.
+        _checks.check_finite(fn, "weights", w)
+        negative = w.detach() < 0
         if bool(negative.any()):
             idx = tuple(int(i) for i in negative.nonzero()[0].tolist())
-            raise ValueError(f"{fn}: argument 'weights' must be >= 0, got a negative at {idx}")
+            raise ValueError(
+                f"{fn}: argument 'weights' must be >= 0, got {float(w[idx]):g} at {idx}"
+            )
     count = (w.detach() > 0).sum(-1)
     few = count < 3
     if bool(few.any()):
         idx = tuple(int(i) for i in few.nonzero()[0].tolist())
         raise ValueError(
             f"{fn}: problem {idx} has {int(count[idx])} point(s) with positive weight "
-            "(after the mask); a rigid alignment needs at least 3 non-collinear points"
+            "(after 'mask' and 'weights'); a rigid alignment needs at least 3 non-collinear "
+            "points"
         )
 
 
@@ -186,11 +208,25 @@ def _weighted_kabsch(
     zeros = torch.zeros_like(source)
     s = torch.where(keep[..., None], source, zeros)
     t = torch.where(keep[..., None], target, zeros)
+    # Scale-free arithmetic: centroids are invariant to a common factor of the weights, and R
+    # to positive factors of either centred cloud (H scales, its singular vectors do not). The
+    # factors are detached constants, so values and gradients are those of the plain formula.
+    w = w / _largest(w, 1)
+    scale_s, scale_t = _largest(s, 2), _largest(t, 2)
+    s, t = s / scale_s, t / scale_t
     total = w.sum(-1, keepdim=True)
     total = torch.where(total > 0, total, torch.ones_like(total))
     mu_s = (w[..., None] * s).sum(-2) / total
     mu_t = (w[..., None] * t).sum(-2) / total
     s_centred = s - mu_s[..., None, :]
     t_centred = t - mu_t[..., None, :]
+    s_centred = s_centred / _largest(s_centred, 2)
+    t_centred = t_centred / _largest(t_centred, 2)
     H = (s_centred * w[..., None]).transpose(-1, -2) @ t_centred
-    return _rigid_from_covariance(H, mu_s, mu_t)
+    return _rigid_from_covariance(H, mu_s * scale_s[..., 0], mu_t * scale_t[..., 0])
+
+
+def _largest(x: Tensor, dims: int) -> Tensor:
+    """Largest |entry| over the last ``dims`` dims (detached, dims kept), 1 where it is 0."""
+    m = x.detach().abs().amax(dim=tuple(range(-dims, 0)), keepdim=True)
+    return torch.where(m > 0, m, torch.ones_like(m))

@@ -58,33 +58,74 @@ def voxel_downsample(points: Tensor, voxel_size: float) -> Tensor:
     """Replace the points of each occupied voxel by their centroid (vectorized).
 
     Voxels are the cells of a grid of pitch ``voxel_size`` anchored at the minimum corner of
-    the cloud. The output is sorted by voxel index (deterministic).
+    the cloud. The output is sorted by voxel index (lexicographic in (x, y, z) cell
+    coordinates; deterministic). Cell coordinates are computed in the dtype of ``points``
+    and compared exactly, so any ratio of extent to pitch is handled; a pitch so small that
+    the cell coordinates overflow the dtype is refused.
 
     Args:
-        points: cloud, shape (N, 3), N ≥ 1.
-        voxel_size: grid pitch, > 0, in the units of ``points``.
+        points: cloud, shape (N, 3), N ≥ 0, finite; a torch tensor or a numpy array
+            (float32/float64).
+        voxel_size: grid pitch, a finite number > 0, in the units of ``points``.
 
     Returns:
         Centroids, shape (M, 3) with M ≤ N, same dtype and device as ``points``.
     """
     fn = "voxel_downsample"
-    _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=1)
-    if points.dim() != 2:
-        raise ValueError(f"{fn}: argument 'points' must have shape (N, 3), got {points.shape}")
-    if not voxel_size > 0:
-        raise ValueError(f"{fn}: argument 'voxel_size' must be > 0, got {voxel_size}")
+    points = _checks.as_points(fn, "points", points)
+    voxel = _checks.real_argument(fn, "voxel_size", voxel_size, minimum=0.0, strict=True)
+    return _downsample(fn, points, voxel)
+
+
+# Largest number of cells for which an int64 key (cx · ey + cy) · ez + cz cannot overflow.
+_MAX_INT_CELLS = 2**62
+
+
+def _downsample(fn: str, points: Tensor, voxel: float) -> Tensor:
+    """voxel_downsample on checked arguments (``fn`` names the public function)."""
     if points.shape[0] == 0:
         return points.clone()
-    cells = torch.floor((points - points.amin(0)) / voxel_size).to(torch.int64)
-    extent = cells.amax(0) + 1
-    key = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
-    _, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
+    low = points.amin(0)
+    cells = torch.floor((points - low) / voxel)
+    top = cells.amax(0).tolist()  # one host sync (torch.unique syncs anyway)
+    if not all(math.isfinite(c) for c in top):
+        _checks.as_points(fn, "points", points, finite=True)  # NaN/Inf (validation off)
+        extent = (points.amax(0) - low).tolist()
+        raise ValueError(
+            f"{fn}: argument 'voxel_size' = {voxel:g} is too small for the extent "
+            f"{[f'{e:g}' for e in extent]} of 'points': the cell coordinates overflow "
+            f"{points.dtype}"
+        )
+    if math.prod(int(c) + 1 for c in top) <= _MAX_INT_CELLS:
+        index = cells.to(torch.int64)
+        extent_y, extent_z = int(top[1]) + 1, int(top[2]) + 1
+        key = (index[:, 0] * extent_y + index[:, 1]) * extent_z + index[:, 2]
+        _, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
+    else:
+        # More cells than an int64 key can number: compare the (exact, float) cell rows.
+        _, inverse, counts = torch.unique(cells, dim=0, return_inverse=True, return_counts=True)
     sums = points.new_zeros(counts.shape[0], 3).index_add_(0, inverse, points)
     return sums / counts[:, None].to(points.dtype)
 
 
-def _tree(points: Tensor) -> cKDTree:
-    return cKDTree(points.detach().cpu().numpy().astype(np.float64, copy=False))
+def _host(fn: str, name: str, points: Tensor) -> np.ndarray:
+    """Points as a float64 numpy array (N, 3); refuses NaN/Inf, which the KD-tree cannot hold.
+
+    Always checked (not only with validation on): the KD-tree code runs on the host anyway.
+    """
+    array = points.detach().reshape(-1, 3).cpu().numpy().astype(np.float64, copy=False)
+    if not np.isfinite(array).all():
+        bad = ~np.isfinite(array)
+        first = np.unravel_index(int(np.flatnonzero(bad)[0]), tuple(points.shape))
+        raise ValueError(
+            f"{fn}: argument '{name}' contains {int(bad.sum())} non-finite value(s) (NaN or "
+            f"Inf), first at index {tuple(int(i) for i in first)}"
+        )
+    return array
+
+
+def _tree(fn: str, name: str, points: Tensor) -> cKDTree:
+    return cKDTree(_host(fn, name, points))
 
 
 def nearest_neighbors(
@@ -93,29 +134,41 @@ def nearest_neighbors(
     """Nearest reference point of every query point, with a KD-tree (scipy cKDTree).
 
     Args:
-        query: points, shape (..., 3).
-        reference: points, shape (M, 3), M ≥ 1.
-        max_distance: if given, neighbours farther than this are reported as missing.
+        query: points, shape (..., 3), finite; a torch tensor or a numpy array
+            (float32/float64).
+        reference: points, shape (M, 3), M ≥ 1, finite, same dtype as ``query``.
+        max_distance: if given, a number > 0 (``inf`` means no bound): neighbours farther
+            than this are reported as missing.
 
     Returns:
         ``(distances, indices)``, each of shape (...); distances in ``query``'s dtype,
         indices int64. A missing neighbour has distance ``inf`` and index −1.
     """
     fn = "nearest_neighbors"
-    _checks.check_tensor(fn, "query", query, (3,))
-    _checks.check_tensor(fn, "reference", reference, (3,), min_batch_dims=1)
-    if reference.dim() != 2 or reference.shape[0] == 0:
-        raise ValueError(
-            f"{fn}: argument 'reference' must have shape (M, 3) with M ≥ 1, got "
-            f"{tuple(reference.shape)}"
+    like = _checks.first_tensor(query, reference)
+    query = _checks.as_points(fn, "query", query, like=like, cloud=False, finite=False)
+    reference = _checks.as_points(fn, "reference", reference, like=like, min_points=1, finite=False)
+    _checks.check_same_kind(fn, query=query, reference=reference)
+    if max_distance is not None:
+        max_distance = _checks.real_argument(
+            fn, "max_distance", max_distance, minimum=0.0, strict=True, allow_inf=True
         )
-    return _query(_tree(reference), query, max_distance)
+    tree = _tree(fn, "reference", reference)
+    return _query(tree, query, max_distance, fn=fn, name="query")
 
 
 def _query(
-    tree: cKDTree, query: Tensor, max_distance: float | None, k: int = 1
+    tree: cKDTree,
+    query: Tensor,
+    max_distance: float | None,
+    k: int = 1,
+    *,
+    fn: str = "icp",
+    name: str = "source",
 ) -> tuple[Tensor, Tensor]:
-    flat = query.detach().reshape(-1, 3).cpu().numpy()
+    """k nearest neighbours of ``query`` (..., 3) in ``tree``; ``fn``/``name`` for messages
+    about non-finite query points (moved clouds whose coordinates overflowed)."""
+    flat = _host(fn, name, query)
     bound = np.inf if max_distance is None else float(max_distance)
     distance, index = tree.query(flat, k=k, distance_upper_bound=bound)
     index = np.where(np.isfinite(distance), index, -1)
@@ -135,30 +188,37 @@ def estimate_normals(
     to point towards it (e.g. the scanner position).
 
     Args:
-        points: cloud, shape (N, 3), N ≥ 3.
-        neighbors: k, the neighbourhood size including the point itself, 3 ≤ k ≤ N.
-        viewpoint: optional position, shape (3,).
+        points: cloud, shape (N, 3), N ≥ 3, finite; a torch tensor or a numpy array
+            (float32/float64).
+        neighbors: k (an int), the neighbourhood size including the point itself,
+            3 ≤ k ≤ N.
+        viewpoint: optional position, shape (3,), finite, same dtype as ``points``.
 
     Returns:
         Normals, shape (N, 3), unit length, same dtype and device as ``points``.
     """
     fn = "estimate_normals"
-    _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=1)
-    if points.dim() != 2:
-        raise ValueError(f"{fn}: argument 'points' must have shape (N, 3), got {points.shape}")
-    if not 3 <= neighbors <= points.shape[0]:
-        raise ValueError(
-            f"{fn}: argument 'neighbors' must lie in [3, N = {points.shape[0]}], got {neighbors}"
-        )
-    _, index = _query(_tree(points), points, None, k=neighbors)
+    points = _checks.as_points(fn, "points", points, min_points=3, finite=False)
+    k = _checks.int_argument(fn, "neighbors", neighbors, minimum=3, maximum=points.shape[0])
+    if viewpoint is not None:
+        viewpoint = _checks.as_points(fn, "viewpoint", viewpoint, like=points, cloud=False)
+        if viewpoint.shape != (3,):
+            raise ValueError(
+                f"{fn}: argument 'viewpoint' must have shape (3,), got {tuple(viewpoint.shape)}"
+            )
+        _checks.check_same_kind(fn, points=points, viewpoint=viewpoint)
+    return _normals(fn, points, k, viewpoint)
+
+
+def _normals(fn: str, points: Tensor, k: int, viewpoint: Tensor | None) -> Tensor:
+    """estimate_normals on checked arguments (``fn`` names the public function)."""
+    _, index = _query(_tree(fn, "points", points), points, None, k=k, fn=fn, name="points")
     local = points[index]  # (N, k, 3)
     centred = local - local.mean(-2, keepdim=True)
     covariance = centred.transpose(-1, -2) @ centred
     _, vectors = torch.linalg.eigh(covariance)  # ascending eigenvalues
     normals = vectors[..., 0]
     if viewpoint is not None:
-        _checks.check_tensor(fn, "viewpoint", viewpoint, (3,))
-        _checks.check_same_kind(fn, points=points, viewpoint=viewpoint)
         facing = ((viewpoint - points) * normals).sum(-1, keepdim=True)
         normals = torch.where(facing < 0, -normals, normals)
     return normals
@@ -194,22 +254,31 @@ class ICPConfig:
     min_correspondences: int = 6
 
     def __post_init__(self) -> None:
-        if self.method not in ("point_to_point", "point_to_plane"):
-            raise ValueError(f"ICPConfig: unknown method {self.method!r}")
-        if self.max_iterations < 0:
-            raise ValueError("ICPConfig: 'max_iterations' must be >= 0")
-        if self.relative_tolerance < 0:
-            raise ValueError("ICPConfig: 'relative_tolerance' must be >= 0")
-        if self.max_distance is not None and not self.max_distance > 0:
-            raise ValueError("ICPConfig: 'max_distance' must be > 0 or None")
-        if self.min_distance < 0:
-            raise ValueError("ICPConfig: 'min_distance' must be >= 0")
-        if self.gate_scale is not None and not self.gate_scale > 0:
-            raise ValueError("ICPConfig: 'gate_scale' must be > 0 or None")
-        if not 0 < self.trim_fraction <= 1:
-            raise ValueError("ICPConfig: 'trim_fraction' must lie in (0, 1]")
-        if self.min_correspondences < 3:
-            raise ValueError("ICPConfig: 'min_correspondences' must be >= 3")
+        fn = "ICPConfig"
+        if not isinstance(self.method, str) or self.method not in (
+            "point_to_point",
+            "point_to_plane",
+        ):
+            raise ValueError(
+                f"{fn}: unknown method {self.method!r}: argument 'method' must be "
+                "'point_to_point' or 'point_to_plane'"
+            )
+        _checks.int_argument(fn, "max_iterations", self.max_iterations, minimum=0)
+        _checks.real_argument(fn, "relative_tolerance", self.relative_tolerance, minimum=0.0)
+        if self.max_distance is not None:
+            _checks.real_argument(fn, "max_distance", self.max_distance, minimum=0.0, strict=True)
+        _checks.real_argument(fn, "min_distance", self.min_distance, minimum=0.0)
+        if self.max_distance is not None and self.min_distance > self.max_distance:
+            raise ValueError(
+                f"{fn}: argument 'min_distance' (the floor of the gate) must be <= "
+                f"'max_distance' = {self.max_distance:g}, got {self.min_distance:g}"
+            )
+        if self.gate_scale is not None:
+            _checks.real_argument(fn, "gate_scale", self.gate_scale, minimum=0.0, strict=True)
+        _checks.real_argument(
+            fn, "trim_fraction", self.trim_fraction, minimum=0.0, strict=True, maximum=1.0
+        )
+        _checks.int_argument(fn, "min_correspondences", self.min_correspondences, minimum=3)
 
 
 class ICPStatus(enum.IntEnum):
@@ -303,14 +372,85 @@ class ICPResult:
 # ----------------------------------------------------------------------------- ICP
 
 
-def _check_clouds(fn: str, source: Tensor, target: Tensor) -> None:
-    for name, x in (("source", source), ("target", target)):
-        _checks.check_tensor(fn, name, x, (3,), min_batch_dims=1)
-        if x.dim() != 2 or x.shape[0] < 3:
-            raise ValueError(
-                f"{fn}: argument '{name}' must have shape (N, 3) with N ≥ 3, got {tuple(x.shape)}"
-            )
+def _clouds(
+    fn: str, source: object, target: object, *, min_points: int = 3, finite: bool | None = True
+) -> tuple[Tensor, Tensor]:
+    """``source`` and ``target`` as (N, 3) tensors of one dtype and device (numpy accepted)."""
+    like = _checks.first_tensor(source, target)
+    source = _checks.as_points(
+        fn, "source", source, like=like, min_points=min_points, finite=finite
+    )
+    target = _checks.as_points(
+        fn, "target", target, like=like, min_points=min_points, finite=finite
+    )
     _checks.check_same_kind(fn, source=source, target=target)
+    return source, target
+
+
+def _check_config(fn: str, config: object) -> ICPConfig:
+    if config is None:
+        return ICPConfig()
+    if not isinstance(config, ICPConfig):
+        raise TypeError(
+            f"{fn}: argument 'config' must be an ICPConfig or None, got {_checks.describe(config)}"
+        )
+    return config
+
+
+def _check_initial(fn: str, initial: object, like: Tensor, *, allow_empty: bool) -> Tensor:
+    """Initial guesses, shape (B, 4, 4), rigid and finite (always: the loop runs on the host)."""
+    _checks.check_tensor(fn, "initial", initial, (4, 4))
+    assert isinstance(initial, Tensor)
+    if initial.dim() != 3 or (initial.shape[0] == 0 and not allow_empty):
+        at_least = "" if allow_empty else " with B ≥ 1"
+        raise ValueError(
+            f"{fn}: argument 'initial' must have shape (B, 4, 4){at_least}, got "
+            f"{tuple(initial.shape)}"
+        )
+    _checks.check_same_kind(fn, source=like, initial=initial)
+    if not bool(torch.isfinite(initial.detach()).all()):
+        raise ValueError(f"{fn}: argument 'initial' contains non-finite values (NaN or Inf)")
+    _checks.check_pose_matrix(fn, "initial", initial)
+    return initial
+
+
+def _check_normals(fn: str, normals: object, target: Tensor, method: str) -> Tensor | None:
+    if normals is None:
+        if method == "point_to_plane":
+            raise ValueError(
+                f"{fn}: method 'point_to_plane' needs 'target_normals' (see estimate_normals)"
+            )
+        return None
+    normals = _checks.as_points(
+        fn, "target_normals", normals, like=target, cloud=False, finite=True
+    )
+    if normals.shape != target.shape:
+        raise ValueError(
+            f"{fn}: 'target_normals' must have the shape of 'target' {tuple(target.shape)}, "
+            f"got {tuple(normals.shape)}"
+        )
+    _checks.check_same_kind(fn, target=target, target_normals=normals)
+    return normals
+
+
+def _prepare(
+    fn: str,
+    source: object,
+    target: object,
+    initial: object,
+    config: object,
+    target_normals: object,
+    *,
+    allow_empty: bool = False,
+) -> tuple[Tensor, Tensor, Tensor, ICPConfig, Tensor | None]:
+    """The checked arguments of the ICP entry points (errors name ``fn``)."""
+    config = _check_config(fn, config)
+    source, target = _clouds(fn, source, target)
+    if initial is None:
+        initial = se3.identity(dtype=source.dtype, device=source.device)[None]
+    initial = _check_initial(fn, initial, source, allow_empty=allow_empty)
+    normals = _check_normals(fn, target_normals, target, config.method)
+    return source, target, initial, config, normals
 
 
 def _move(T: Tensor, points: Tensor) -> Tensor:
@@ -373,39 +513,44 @@ def icp_batch(
     :func:`icp` from that initial guess.
 
     Args:
-        source: cloud to move, shape (N, 3).
-        target: fixed cloud, shape (M, 3), same dtype and device.
-        initial: initial guesses of T (source → target frame), shape (B, 4, 4).
+        source: cloud to move, shape (N, 3), N ≥ 3, finite; a torch tensor or a numpy array
+            (float32/float64; numpy arrays are moved to the device of the tensor arguments).
+        target: fixed cloud, shape (M, 3), M ≥ 3, finite, same dtype (no silent promotion:
+            mixed float32/float64 is a TypeError) and device.
+        initial: initial guesses of T (source → target frame), shape (B, 4, 4), B ≥ 0.
         config: options; ``ICPConfig()`` by default.
         target_normals: unit normals of ``target``, shape (M, 3); required for
             ``method="point_to_plane"`` (see :func:`estimate_normals`).
 
     Returns:
-        :class:`ICPResult` with batch shape (B,).
+        :class:`ICPResult` with batch shape (B,) (empty for B = 0).
     """
     fn = "icp_batch"
-    config = ICPConfig() if config is None else config
-    _check_clouds(fn, source, target)
-    _checks.check_tensor(fn, "initial", initial, (4, 4))
-    if initial.dim() != 3:
-        raise ValueError(f"{fn}: argument 'initial' must have shape (B, 4, 4), got {initial.shape}")
-    _checks.check_same_kind(fn, source=source, initial=initial)
-    _checks.check_pose_matrix(fn, "initial", initial)
-    if config.method == "point_to_plane":
-        if target_normals is None:
-            raise ValueError(f"{fn}: method 'point_to_plane' needs 'target_normals'")
-        _checks.check_tensor(fn, "target_normals", target_normals, (3,))
-        if target_normals.shape != target.shape:
-            raise ValueError(
-                f"{fn}: 'target_normals' must have the shape of 'target' {tuple(target.shape)}, "
-                f"got {tuple(target_normals.shape)}"
-            )
-        _checks.check_same_kind(fn, target=target, target_normals=target_normals)
+    source, target, initial, config, normals = _prepare(
+        fn, source, target, initial, config, target_normals, allow_empty=True
+    )
+    return _run(fn, source, target, initial, config, normals)
+
+
+def _run(
+    fn: str,
+    source: Tensor,
+    target: Tensor,
+    initial: Tensor,
+    config: ICPConfig,
+    target_normals: Tensor | None,
+) -> ICPResult:
+    """The ICP loop on checked arguments; an empty batch gives an empty result."""
+    if initial.shape[0] == 0:
+        empty = source.new_zeros(0)
+        none = torch.zeros(0, dtype=torch.int64)
+        return ICPResult(initial.clone(), empty, empty, empty, none, none, source.new_zeros(1, 0))
     with _checks.validation(False):
-        return _icp_loop(source, target, initial, config, target_normals)
+        return _icp_loop(fn, source, target, initial, config, target_normals)
 
 
 def _icp_loop(
+    fn: str,
     source: Tensor,
     target: Tensor,
     initial: Tensor,
@@ -414,7 +559,7 @@ def _icp_loop(
 ) -> ICPResult:
     batch = initial.shape[0]
     n = source.shape[0]
-    tree = _tree(target)
+    tree = _tree(fn, "target", target)
     T = initial.clone()
     infinite = math.inf if config.max_distance is None else config.max_distance
     gate = source.new_full((batch,), infinite)
@@ -427,7 +572,7 @@ def _icp_loop(
     def correspondences(T: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         moved = _move(T, source)
         bound = float(gate.max()) if bool(torch.isfinite(gate).all()) else None
-        distance, index = _query(tree, moved, bound)
+        distance, index = _query(tree, moved, bound, fn=fn, name="source")
         mask = _inlier_mask(distance, gate, config.trim_fraction)
         count = mask.sum(-1)
         squared = torch.where(mask, distance, zero) ** 2
@@ -492,8 +637,9 @@ def icp(
     by one Gauss–Newton step on the linearized plane distances (left update exp(δ) T_k).
 
     Args:
-        source: cloud to move, shape (N, 3).
-        target: fixed cloud, shape (M, 3), same dtype and device.
+        source: cloud to move, shape (N, 3), N ≥ 3, finite; a torch tensor or a numpy array
+            (float32/float64).
+        target: fixed cloud, shape (M, 3), M ≥ 3, finite, same dtype and device.
         initial: initial T, shape (4, 4); identity by default.
         config: options; ``ICPConfig()`` by default.
         target_normals: unit normals of ``target``, shape (M, 3), for point-to-plane.
@@ -503,12 +649,16 @@ def icp(
         ``fitness``, ``iterations``, ``converged`` and a ``reason`` string.
         Non-convergence is reported in ``status``, not raised.
     """
-    if initial is None:
-        initial = se3.identity(dtype=source.dtype, device=source.device)
-    _checks.check_tensor("icp", "initial", initial, (4, 4))
-    if initial.dim() != 2:
-        raise ValueError(f"icp: argument 'initial' must have shape (4, 4), got {initial.shape}")
-    return icp_batch(source, target, initial[None], config, target_normals)[0]
+    fn = "icp"
+    if initial is not None:
+        _checks.check_tensor(fn, "initial", initial, (4, 4))
+        if initial.dim() != 2:
+            raise ValueError(
+                f"{fn}: argument 'initial' must have shape (4, 4), got {tuple(initial.shape)}"
+            )
+        initial = initial[None]
+    prepared = _prepare(fn, source, target, initial, config, target_normals)
+    return _run(fn, *prepared)[0]
 
 
 def rotations_about_axis(
@@ -517,20 +667,28 @@ def rotations_about_axis(
     """``count`` rotations by 2πk/count, k = 0 … count−1, about a fixed axis.
 
     Args:
-        count: number of rotations, ≥ 1.
-        axis: rotation axis, shape (3,); the y axis (the turntable axis of the Stanford
-            scans) by default.
-        dtype: dtype of the result when ``axis`` is None.
+        count: number of rotations, an int ≥ 1.
+        axis: rotation axis, shape (3,), finite and non-zero (any length); the y axis (the
+            turntable axis of the Stanford scans) by default.
+        dtype: dtype of the result when ``axis`` is None (float32 or float64); otherwise
+            the result has ``axis``'s dtype and device.
 
     Returns:
         Rotation matrices, shape (count, 3, 3); the first is the identity.
     """
-    if count < 1:
-        raise ValueError(f"rotations_about_axis: 'count' must be >= 1, got {count}")
+    fn = "rotations_about_axis"
+    count = _checks.int_argument(fn, "count", count, minimum=1)
     if axis is None:
+        _checks.check_dtype_device(fn, dtype, None)
         axis = torch.tensor([0.0, 1.0, 0.0], dtype=dtype)
-    _checks.check_tensor("rotations_about_axis", "axis", axis, (3,))
-    unit = axis / torch.linalg.vector_norm(axis)
+    _checks.check_tensor(fn, "axis", axis, (3,))
+    if axis.dim() != 1:
+        raise ValueError(f"{fn}: argument 'axis' must have shape (3,), got {tuple(axis.shape)}")
+    _checks.check_finite(fn, "axis", axis)
+    norm = torch.linalg.vector_norm(axis)
+    if _checks.value_checks_active() and not bool(norm > 0):
+        raise ValueError(f"{fn}: argument 'axis' must be a non-zero vector, got {axis.tolist()}")
+    unit = axis / norm
     angles = torch.arange(count, dtype=axis.dtype, device=axis.device) * (2 * math.pi / count)
     return so3.exp(angles[:, None] * unit)
 
@@ -545,13 +703,16 @@ def rotations_uniform(
     count = 128, ≈ 24° for 256).
 
     Args:
-        count: number of rotations, ≥ 1.
+        count: number of rotations, an int ≥ 1.
+        dtype: float32 or float64.
+        device: device of the result.
 
     Returns:
         Rotation matrices, shape (count, 3, 3).
     """
-    if count < 1:
-        raise ValueError(f"rotations_uniform: 'count' must be >= 1, got {count}")
+    fn = "rotations_uniform"
+    count = _checks.int_argument(fn, "count", count, minimum=1)
+    _checks.check_dtype_device(fn, dtype, device)
     phi = math.sqrt(2.0)
     psi = 1.533751168755204288118041
     s = torch.arange(count, dtype=torch.float64) + 0.5
@@ -578,17 +739,18 @@ def initial_guesses(source: Tensor, target: Tensor, rotations: Tensor) -> Tensor
     onto the target centroid c_t after each rotation R.
 
     Args:
-        source: cloud, shape (N, 3).
-        target: cloud, shape (M, 3).
-        rotations: rotation matrices, shape (B, 3, 3).
+        source: cloud, shape (N, 3), N ≥ 1, finite; a torch tensor or a numpy array.
+        target: cloud, shape (M, 3), M ≥ 1, finite, same dtype and device.
+        rotations: rotation matrices, shape (B, 3, 3), same dtype and device.
 
     Returns:
         Transforms, shape (B, 4, 4).
     """
     fn = "initial_guesses"
-    _check_clouds(fn, source, target)
+    source, target = _clouds(fn, source, target, min_points=1, finite=None)
     _checks.check_tensor(fn, "rotations", rotations, (3, 3))
     _checks.check_same_kind(fn, source=source, rotations=rotations)
+    _checks.check_rotation(fn, "rotations", rotations)
     c_s = source.mean(0)
     c_t = target.mean(0)
     t = c_t - rotations @ c_s
@@ -612,30 +774,41 @@ def icp_multistart(
     Args:
         source: cloud to move, shape (N, 3).
         target: fixed cloud, shape (M, 3).
-        initial: initial guesses, shape (B, 4, 4) (e.g. :func:`initial_guesses`).
+        initial: initial guesses, shape (B, 4, 4), B ≥ 1 (e.g. :func:`initial_guesses`).
         config: ICP options.
-        fitness_distance: yardstick distance; ``config.min_distance`` if None (then it must
-            be > 0).
+        fitness_distance: yardstick distance, a finite number > 0; ``config.min_distance``
+            if None (then that must be > 0).
         target_normals: for point-to-plane.
 
     Returns:
         ``(best, all_runs)``: the best run (batch shape ()) and every run (batch shape (B,)).
         ``best.fitness`` and ``best.rms`` are measured at ``fitness_distance``.
     """
-    config = ICPConfig() if config is None else config
-    distance = config.min_distance if fitness_distance is None else fitness_distance
-    if not distance > 0:
-        raise ValueError("icp_multistart: 'fitness_distance' (or config.min_distance) must be > 0")
-    runs = icp_batch(source, target, initial, config, target_normals)
-    best, _ = _select(runs, source, target, distance)
+    fn = "icp_multistart"
+    source, target, initial, config, normals = _prepare(
+        fn, source, target, initial, config, target_normals
+    )
+    if fitness_distance is not None:
+        distance = _checks.real_argument(
+            fn, "fitness_distance", fitness_distance, minimum=0.0, strict=True
+        )
+    elif config.min_distance > 0:
+        distance = config.min_distance
+    else:
+        raise ValueError(
+            f"{fn}: argument 'fitness_distance' is None and config.min_distance is 0; give a "
+            "fitness_distance > 0 (or a config with min_distance > 0)"
+        )
+    runs = _run(fn, source, target, initial, config, normals)
+    best, _ = _select(runs, source, target, distance, fn)
     return best, runs
 
 
 def _select(
-    runs: ICPResult, source: Tensor, target: Tensor, distance: float
+    runs: ICPResult, source: Tensor, target: Tensor, distance: float, fn: str = "icp"
 ) -> tuple[ICPResult, Tensor]:
     """The best run by fitness at ``distance`` (then RMS), and the ranking of all runs."""
-    fitness, rms = _fitness(runs.transform, source, target, distance)
+    fitness, rms = _fitness(runs.transform, source, target, distance, fn)
     # Stable lexicographic order: sort by RMS first, then stably by descending fitness.
     by_rms = torch.argsort(rms, stable=True)
     order = by_rms[torch.argsort(-fitness[by_rms], stable=True)]
@@ -663,12 +836,20 @@ class Stage:
     normal_neighbors: int = 12
 
     def __post_init__(self) -> None:
-        if self.voxel_size < 0:
-            raise ValueError("Stage: 'voxel_size' must be >= 0")
-        if self.keep < 1:
-            raise ValueError("Stage: 'keep' must be >= 1")
-        if self.fitness_distance is None and self.voxel_size == 0:
-            raise ValueError("Stage: give 'fitness_distance' when 'voxel_size' is 0")
+        fn = "Stage"
+        _checks.real_argument(fn, "voxel_size", self.voxel_size, minimum=0.0)
+        if not isinstance(self.config, ICPConfig):
+            raise TypeError(
+                f"{fn}: argument 'config' must be an ICPConfig, got {_checks.describe(self.config)}"
+            )
+        _checks.int_argument(fn, "keep", self.keep, minimum=1)
+        if self.fitness_distance is not None:
+            _checks.real_argument(
+                fn, "fitness_distance", self.fitness_distance, minimum=0.0, strict=True
+            )
+        elif self.voxel_size == 0:
+            raise ValueError(f"{fn}: give 'fitness_distance' when 'voxel_size' is 0")
+        _checks.int_argument(fn, "normal_neighbors", self.normal_neighbors, minimum=3)
 
 
 def register_coarse_to_fine(
@@ -684,28 +865,38 @@ def register_coarse_to_fine(
     the basin of plain ICP at a fraction of the cost of running all hypotheses finely.
 
     Args:
-        source: cloud to move, shape (N, 3).
-        target: fixed cloud, shape (M, 3).
-        initial: initial guesses of T (source → target frame), shape (B, 4, 4).
-        stages: the levels, coarse to fine; the last one's result is returned.
+        source: cloud to move, shape (N, 3), finite; a torch tensor or a numpy array.
+        target: fixed cloud, shape (M, 3), finite, same dtype and device.
+        initial: initial guesses of T (source → target frame), shape (B, 4, 4), B ≥ 1.
+        stages: the levels (:class:`Stage`), coarse to fine; the last one's result is
+            returned.
 
     Returns:
         ``(best, per_stage)``: the best run of the last level (batch shape (), with
         ``fitness``/``rms`` at that level's yardstick) and every level's batch of runs.
     """
     fn = "register_coarse_to_fine"
-    _check_clouds(fn, source, target)
-    _checks.check_tensor(fn, "initial", initial, (4, 4))
-    if initial.dim() != 3:
-        raise ValueError(f"{fn}: argument 'initial' must have shape (B, 4, 4), got {initial.shape}")
+    source, target = _clouds(fn, source, target)
+    initial = _check_initial(fn, initial, source, allow_empty=False)
+    if not isinstance(stages, (tuple, list)):
+        raise TypeError(
+            f"{fn}: argument 'stages' must be a tuple or list of Stage, got "
+            f"{_checks.describe(stages)}"
+        )
     if len(stages) == 0:
-        raise ValueError(f"{fn}: 'stages' must not be empty")
+        raise ValueError(f"{fn}: argument 'stages' must not be empty")
+    for level, stage in enumerate(stages):
+        if not isinstance(stage, Stage):
+            raise TypeError(
+                f"{fn}: argument 'stages' must hold Stage objects, got "
+                f"{_checks.describe(stage)} at index {level}"
+            )
     hypotheses = initial
     per_stage: list[ICPResult] = []
     best: ICPResult | None = None
     for level, stage in enumerate(stages):
-        src = voxel_downsample(source, stage.voxel_size) if stage.voxel_size > 0 else source
-        tgt = voxel_downsample(target, stage.voxel_size) if stage.voxel_size > 0 else target
+        src = _downsample(fn, source, stage.voxel_size) if stage.voxel_size > 0 else source
+        tgt = _downsample(fn, target, stage.voxel_size) if stage.voxel_size > 0 else target
         if min(src.shape[0], tgt.shape[0]) < 3:
             raise ValueError(
                 f"{fn}: level {level} (voxel size {stage.voxel_size:g}) leaves "
@@ -714,19 +905,21 @@ def register_coarse_to_fine(
             )
         normals = None
         if stage.config.method == "point_to_plane":
-            normals = estimate_normals(tgt, min(stage.normal_neighbors, tgt.shape[0]))
+            normals = _normals(fn, tgt, min(stage.normal_neighbors, tgt.shape[0]), None)
         distance = stage.voxel_size if stage.fitness_distance is None else stage.fitness_distance
-        runs = icp_batch(src, tgt, hypotheses, stage.config, normals)
-        best, order = _select(runs, src, tgt, distance)
+        runs = _run(fn, src, tgt, hypotheses, stage.config, normals)
+        best, order = _select(runs, src, tgt, distance, fn)
         per_stage.append(runs)
         hypotheses = runs.transform[order[: stage.keep]]
     assert best is not None
     return best, per_stage
 
 
-def _fitness(T: Tensor, source: Tensor, target: Tensor, distance: float) -> tuple[Tensor, Tensor]:
+def _fitness(
+    T: Tensor, source: Tensor, target: Tensor, distance: float, fn: str = "icp"
+) -> tuple[Tensor, Tensor]:
     """Fraction of source points within ``distance`` of the target and their RMS, (B,) each."""
-    d, _ = _query(_tree(target), _move(T, source), distance)
+    d, _ = _query(_tree(fn, "target", target), _move(T, source), distance, fn=fn)
     inside = torch.isfinite(d)
     fitness = inside.to(source.dtype).mean(-1)
     squared = torch.where(inside, d, torch.zeros_like(d)) ** 2
@@ -747,11 +940,13 @@ def chain_poses(relative: Tensor) -> Tensor:
     Returns:
         Poses T̂_0i, shape (M, 4, 4), the first one the identity.
     """
-    _checks.check_tensor("chain_poses", "relative", relative, (4, 4), min_batch_dims=1)
+    fn = "chain_poses"
+    _checks.check_tensor(fn, "relative", relative, (4, 4), min_batch_dims=1)
     if relative.dim() != 3:
         raise ValueError(
-            f"chain_poses: 'relative' must have shape (M-1, 4, 4), got {relative.shape}"
+            f"{fn}: argument 'relative' must have shape (M-1, 4, 4), got {tuple(relative.shape)}"
         )
+    _checks.check_pose_matrix(fn, "relative", relative)
     poses = [se3.identity(dtype=relative.dtype, device=relative.device)]
     for step in relative:
         poses.append(se3.compose(poses[-1], step))

@@ -25,7 +25,7 @@ r_ij = X_ij − T_0i⁻¹ X_0j, i.e. X_ij − T_i0 X_0j of seed eq. (1.1) with T
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -109,31 +109,36 @@ def mutual_nearest_neighbors(first: Tensor, second: Tensor, radius: float) -> Te
     """Pairs (a, b) where first[a] and second[b] are each other's nearest neighbour, ≤ radius.
 
     Args:
-        first: points, shape (N, 3).
-        second: points, shape (M, 3), same frame.
-        radius: largest accepted distance, > 0.
+        first: points, shape (N, 3), finite; a torch tensor or a numpy array
+            (float32/float64).
+        second: points, shape (M, 3), same frame, finite, same dtype.
+        radius: largest accepted distance, a number > 0 (``inf``: no bound).
 
     Returns:
-        Index pairs, int64, shape (K, 2), sorted by a; each a and each b appears at most once.
+        Index pairs, int64, shape (K, 2), sorted by a; each a and each b appears at most once
+        (on the CPU).
     """
     fn = "mutual_nearest_neighbors"
-    _check_cloud(fn, "first", first)
-    _check_cloud(fn, "second", second)
+    like = _checks.first_tensor(first, second)
+    first = _checks.as_points(fn, "first", first, like=like, finite=False)
+    second = _checks.as_points(fn, "second", second, like=like, finite=False)
     _checks.check_same_kind(fn, first=first, second=second)
-    if not radius > 0:
-        raise ValueError(f"{fn}: argument 'radius' must be > 0, got {radius}")
-    a_to_b = _mutual(_numpy(first), _numpy(second), None, None, radius)
+    bound = _checks.real_argument(fn, "radius", radius, minimum=0.0, strict=True, allow_inf=True)
+    a_to_b = _mutual(_numpy(fn, "first", first), _numpy(fn, "second", second), None, None, bound)
     return torch.from_numpy(a_to_b).to(torch.int64)
 
 
-def _check_cloud(fn: str, name: str, x: Tensor) -> None:
-    _checks.check_tensor(fn, name, x, (3,), min_batch_dims=1)
-    if x.dim() != 2:
-        raise ValueError(f"{fn}: argument '{name}' must have shape (N, 3), got {tuple(x.shape)}")
-
-
-def _numpy(x: Tensor) -> np.ndarray:
-    return x.detach().cpu().numpy().astype(np.float64, copy=False)
+def _numpy(fn: str, name: str, x: Tensor) -> np.ndarray:
+    """Points as float64 numpy (N, 3); refuses NaN/Inf always (the KD-tree cannot hold them)."""
+    array = x.detach().cpu().numpy().astype(np.float64, copy=False)
+    bad = ~np.isfinite(array)
+    if bad.any():
+        first = np.unravel_index(int(np.flatnonzero(bad)[0]), array.shape)
+        raise ValueError(
+            f"{fn}: argument '{name}' contains {int(bad.sum())} non-finite value(s) (NaN or "
+            f"Inf), first at index {tuple(int(i) for i in first)}"
+        )
+    return array
 
 
 def _mutual(
@@ -190,6 +195,33 @@ def _greedy_components(
     return label, refused
 
 
+def _pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
+    """Scan pairs as a list of (i, k) ints with 0 ≤ i, k < m and i ≠ k."""
+    if isinstance(pairs, (str, bytes)) or not isinstance(pairs, Iterable):
+        raise TypeError(
+            f"{fn}: argument 'pairs' must be a sequence of (i, k) scan pairs, got "
+            f"{_checks.describe(pairs)}"
+        )
+    checked = []
+    for position, pair in enumerate(pairs):
+        items = (
+            [] if isinstance(pair, (str, bytes)) or not isinstance(pair, Iterable) else list(pair)
+        )
+        if len(items) != 2:
+            raise ValueError(
+                f"{fn}: argument 'pairs' must hold (i, k) pairs, got {pair!r} at position "
+                f"{position}"
+            )
+        i, k = (_checks.int_argument(fn, f"pairs[{position}]", x) for x in items)
+        if not (0 <= i < m and 0 <= k < m and i != k):
+            raise ValueError(
+                f"{fn}: argument 'pairs' holds the invalid scan pair ({i}, {k}) at position "
+                f"{position}: need 0 ≤ i, k < {m} (the number of clouds) and i ≠ k"
+            )
+        checked.append((i, k))
+    return checked
+
+
 def build_tracks(
     clouds: Sequence[Tensor],
     poses: Tensor,
@@ -202,13 +234,15 @@ def build_tracks(
     """Build point tracks from scans and their current poses (module docstring).
 
     Args:
-        clouds: m point clouds in their scan frames, shapes (N_i, 3), one dtype and device
+        clouds: a list or tuple of m ≥ 2 point clouds in their scan frames, shapes (N_i, 3),
+            finite, one dtype and device; torch tensors or numpy arrays (float32/float64)
             (downsample them first, e.g. with ``icp.voxel_downsample``).
         poses: T_0i mapping scan i into the world frame, shape (m, 4, 4).
-        radius: largest distance (world frame) between matched points, > 0; about the
-            downsampling pitch plus the pose error.
-        pairs: scan pairs (i, k) to match; all pairs i < k by default.
-        min_views: smallest number of scans a track must be seen in, ≥ 2.
+        radius: largest distance (world frame) between matched points, a number > 0
+            (``inf``: no bound); about the downsampling pitch plus the pose error.
+        pairs: scan pairs (i, k) of ints, 0 ≤ i, k < m, i ≠ k, to match; all pairs i < k by
+            default.
+        min_views: smallest number of scans a track must be seen in, an int ≥ 2.
         conflicts: ``"greedy"``: merge matches shortest first, skipping merges that would
             put two points of one scan into a track; ``"drop"``: connected components,
             dropping those that hold one scan twice.
@@ -217,12 +251,22 @@ def build_tracks(
         :class:`Tracks` (edge arrays sorted by point, then pose; X_0j initial points).
     """
     fn = "build_tracks"
+    if not isinstance(clouds, (list, tuple)):
+        raise TypeError(
+            f"{fn}: argument 'clouds' must be a list or tuple of (N_i, 3) point clouds, got "
+            f"{_checks.describe(clouds)}"
+        )
     m = len(clouds)
     if m < 2:
-        raise ValueError(f"{fn}: need at least 2 clouds, got {m}")
+        raise ValueError(f"{fn}: argument 'clouds' must hold at least 2 clouds, got {m}")
+    like = _checks.first_tensor(*clouds)
+    clouds = [
+        _checks.as_points(fn, f"clouds[{i}]", cloud, like=like, finite=False)
+        for i, cloud in enumerate(clouds)
+    ]
     for i, cloud in enumerate(clouds):
-        _check_cloud(fn, f"clouds[{i}]", cloud)
         _checks.check_same_kind(fn, **{"clouds[0]": clouds[0], f"clouds[{i}]": cloud})
+        _numpy(fn, f"clouds[{i}]", cloud)  # finite (always: KD-trees on the host)
     _checks.check_tensor(fn, "poses", poses, (4, 4))
     if poses.shape != (m, 4, 4):
         raise ValueError(
@@ -231,20 +275,17 @@ def build_tracks(
         )
     _checks.check_same_kind(fn, **{"clouds[0]": clouds[0], "poses": poses})
     _checks.check_pose_matrix(fn, "poses", poses)
-    if not radius > 0:
-        raise ValueError(f"{fn}: argument 'radius' must be > 0, got {radius}")
-    if min_views < 2:
-        raise ValueError(f"{fn}: argument 'min_views' must be >= 2, got {min_views}")
-    if conflicts not in ("greedy", "drop"):
-        raise ValueError(f"{fn}: argument 'conflicts' must be 'greedy' or 'drop'")
-    if pairs is None:
-        pairs = list(itertools.combinations(range(m), 2))
-    for i, k in pairs:
-        if not (0 <= i < m and 0 <= k < m and i != k):
-            raise ValueError(f"{fn}: invalid scan pair ({i}, {k}) for {m} clouds")
+    radius = _checks.real_argument(fn, "radius", radius, minimum=0.0, strict=True, allow_inf=True)
+    min_views = _checks.int_argument(fn, "min_views", min_views, minimum=2)
+    if not isinstance(conflicts, str) or conflicts not in ("greedy", "drop"):
+        raise ValueError(
+            f"{fn}: argument 'conflicts' must be 'greedy' or 'drop', got "
+            f"{_checks.describe(conflicts)}"
+        )
+    pairs = list(itertools.combinations(range(m), 2)) if pairs is None else _pairs(fn, pairs, m)
 
     dtype, device = clouds[0].dtype, clouds[0].device
-    world = [_numpy(se3.act(poses[i], clouds[i])) for i in range(m)]
+    world = [_numpy(fn, "poses", se3.act(poses[i], clouds[i])) for i in range(m)]
     trees = [cKDTree(w) if len(w) else None for w in world]
     sizes = np.array([len(w) for w in world], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes)))
