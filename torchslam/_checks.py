@@ -364,6 +364,13 @@ import numbers as _numbers  # noqa: E402
 import os as _os  # noqa: E402
 
 
+def _got(value: object) -> str:
+    """``10.0 (float)``, ``'8' (str)`` for plain values, the type name otherwise."""
+    if isinstance(value, (str, int, float, bool, complex)) or value is None:
+        return f"{value!r} ({type(value).__name__})"
+    return describe(value)
+
+
 def check_int(
     fn: str,
     name: str,
@@ -384,7 +391,7 @@ def check_int(
         bounds.append(f"<= {maximum}")
     expected = "an int" + (" " + " and ".join(bounds) if bounds else "")
     if isinstance(value, bool) or not isinstance(value, _numbers.Integral):
-        raise TypeError(f"{fn}: {kind} '{name}' must be {expected}, got {describe(value)}")
+        raise TypeError(f"{fn}: {kind} '{name}' must be an int, got {_got(value)}")
     result = operator.index(value)
     if (minimum is not None and result < minimum) or (maximum is not None and result > maximum):
         raise ValueError(f"{fn}: {kind} '{name}' must be {expected}, got {result!r}")
@@ -414,9 +421,9 @@ def check_real(
         parts.append(f"{'>' if low_open else '>='} {low:g}")
     elif high is not None:
         parts.append(f"{'<' if high_open else '<='} {high:g}")
-    expected = "a finite real number" + (" " + parts[0] if parts else "")
+    expected = "a finite number" + (" " + parts[0] if parts else "")
     if isinstance(value, bool) or not isinstance(value, _numbers.Real):
-        raise TypeError(f"{fn}: {kind} '{name}' must be {expected}, got {describe(value)}")
+        raise TypeError(f"{fn}: {kind} '{name}' must be a real number, got {_got(value)}")
     result = float(value)
     ok = _math.isfinite(result)
     if ok and low is not None:
