@@ -490,3 +490,178 @@ def real_argument(
     if not ok:
         raise ValueError(f"{fn}: argument '{name}' must be {wanted}, got {describe(value)}")
     return number
+
+
+# --------------------------------------------------------------------------------------------
+# Plain-Python arguments (fix-reg branch): numbers, seeds, dtypes, devices, paths and names, for
+# the register / io / data / initialization boundary and config dataclasses.
+# --------------------------------------------------------------------------------------------
+
+import math as _math  # noqa: E402
+import numbers as _numbers  # noqa: E402
+import os as _os  # noqa: E402
+
+
+def _got(value: object) -> str:
+    """``10.0 (float)``, ``'8' (str)`` for plain values, the type name otherwise."""
+    if isinstance(value, (str, int, float, bool, complex)) or value is None:
+        return f"{value!r} ({type(value).__name__})"
+    return describe(value)
+
+
+def check_int(
+    fn: str,
+    name: str,
+    value: object,
+    *,
+    minimum: int | None = None,
+    maximum: int | None = None,
+    kind: str = "argument",
+) -> int:
+    """An int (or numpy integer; not bool) in [minimum, maximum]: TypeError / ValueError.
+
+    ``kind`` names what ``name`` is in the message (``"argument"``, ``"field"``).
+    """
+    bounds = []
+    if minimum is not None:
+        bounds.append(f">= {minimum}")
+    if maximum is not None:
+        bounds.append(f"<= {maximum}")
+    expected = "an int" + (" " + " and ".join(bounds) if bounds else "")
+    if isinstance(value, bool) or not isinstance(value, _numbers.Integral):
+        raise TypeError(f"{fn}: {kind} '{name}' must be an int, got {_got(value)}")
+    result = operator.index(value)
+    if (minimum is not None and result < minimum) or (maximum is not None and result > maximum):
+        raise ValueError(f"{fn}: {kind} '{name}' must be {expected}, got {result!r}")
+    return result
+
+
+def check_real(
+    fn: str,
+    name: str,
+    value: object,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    kind: str = "argument",
+) -> float:
+    """A finite real number (int, float, numpy scalar; not bool) in a range, as a float.
+
+    The range is [low, high], with ``low_open`` / ``high_open`` excluding an end; None leaves
+    that side unbounded. TypeError for a non-number, ValueError for NaN, Inf or out of range.
+    """
+    parts = []
+    if low is not None and high is not None:
+        parts.append(f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}")
+    elif low is not None:
+        parts.append(f"{'>' if low_open else '>='} {low:g}")
+    elif high is not None:
+        parts.append(f"{'<' if high_open else '<='} {high:g}")
+    expected = "a finite number" + (" " + parts[0] if parts else "")
+    if isinstance(value, bool) or not isinstance(value, _numbers.Real):
+        raise TypeError(f"{fn}: {kind} '{name}' must be a real number, got {_got(value)}")
+    result = float(value)
+    ok = _math.isfinite(result)
+    if ok and low is not None:
+        ok = result > low if low_open else result >= low
+    if ok and high is not None:
+        ok = result < high if high_open else result <= high
+    if not ok:
+        raise ValueError(f"{fn}: {kind} '{name}' must be {expected}, got {value!r}")
+    return result
+
+
+def check_float_dtype(fn: str, dtype: object, name: str = "dtype") -> torch.dtype:
+    """``dtype`` must be torch.float32 or torch.float64 (TypeError otherwise)."""
+    if not isinstance(dtype, torch.dtype) or dtype not in _SUPPORTED_DTYPES:
+        got = str(dtype) if isinstance(dtype, torch.dtype) else describe(dtype)
+        raise TypeError(
+            f"{fn}: argument '{name}' must be torch.float32 or torch.float64, got {got}"
+        )
+    return dtype
+
+
+def check_device(fn: str, device: object, name: str = "device") -> torch.device | None:
+    """``device`` must be None, a torch.device or a device string; returns it parsed."""
+    if device is None or isinstance(device, torch.device):
+        return device
+    if not isinstance(device, str):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a torch.device, a str or None, got {describe(device)}"
+        )
+    try:
+        return torch.device(device)
+    except (RuntimeError, ValueError) as error:
+        raise ValueError(f"{fn}: argument '{name}' is not a device: {device!r} ({error})") from None
+
+
+# torch.Generator.manual_seed accepts the int64 and uint64 ranges together.
+SEED_RANGE = (-(2**63), 2**64 - 1)
+
+
+def check_seed(fn: str, seed: object, name: str = "seed") -> int:
+    """A generator seed: an int in [-2**63, 2**64 - 1] (what torch.Generator accepts)."""
+    return check_int(fn, name, seed, minimum=SEED_RANGE[0], maximum=SEED_RANGE[1])
+
+
+def check_path(fn: str, path: object, name: str = "path", *, is_file: bool = False) -> str:
+    """A file system path (str or os.PathLike); with ``is_file``, an existing regular file.
+
+    TypeError for another type (an int would open a file descriptor); ValueError for an empty
+    path or a directory; FileNotFoundError (an OSError) for a missing file. Returns the path
+    as a str.
+    """
+    if isinstance(path, (str, _os.PathLike)):
+        text = _os.fspath(path)
+        text = _os.fsdecode(text) if isinstance(text, bytes) else text
+    else:
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a str or os.PathLike, got {describe(path)}"
+        )
+    if not text:
+        raise ValueError(f"{fn}: argument '{name}' must be a non-empty path, got ''")
+    if is_file:
+        if _os.path.isdir(text):
+            raise ValueError(f"{fn}: argument '{name}' must be a file, got the directory {text}")
+        if not _os.path.exists(text):
+            raise FileNotFoundError(2, f"{fn}: no such file", text)
+        if not _os.path.isfile(text):
+            raise ValueError(f"{fn}: argument '{name}' must be a regular file, got {text}")
+    return text
+
+
+def check_names(
+    fn: str, names: object, name: str = "names", *, count: int | None = None, words: bool = True
+) -> list[str]:
+    """A sequence of distinct str names (not a single str), ``count`` of them if given.
+
+    With ``words``, each name must be a single word usable in a text file: non-empty, no
+    white space and not starting with ``#`` (a comment). Returns them as a list.
+    """
+    if isinstance(names, (str, bytes)) or not isinstance(names, Sequence):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a sequence (list or tuple) of str, "
+            f"got {describe(names)}"
+        )
+    out = list(names)
+    for k, item in enumerate(out):
+        if not isinstance(item, str):
+            raise TypeError(
+                f"{fn}: argument '{name}' must hold str, got {describe(item)} at index {k}"
+            )
+        if words and (not item or item.startswith("#") or any(c.isspace() for c in item)):
+            raise ValueError(
+                f"{fn}: argument '{name}' must hold non-empty names without white space that "
+                f"do not start with '#', got {item!r} at index {k}"
+            )
+    if count is not None and len(out) != count:
+        raise ValueError(f"{fn}: argument '{name}' must hold {count} names, got {len(out)}")
+    repeated = sorted({n for k, n in enumerate(out) if n in out[:k]})
+    if repeated:
+        raise ValueError(
+            f"{fn}: argument '{name}' must hold distinct names, repeated: "
+            + ", ".join(map(repr, repeated))
+        )
+    return out

@@ -250,11 +250,27 @@ def _one_line(error: BaseException) -> str:
     return " ".join(str(error).split()) or type(error).__name__
 
 
+def _check_version_last(parser: Parser, argv: list[str]) -> None:
+    """argparse prints the version and exits at ``--version``, ignoring what follows it:
+    refuse arguments after it instead (exit status 2), so ``--version extra`` is an error."""
+    for k, token in enumerate(argv):
+        if token == "--":
+            return
+        # argparse also accepts unambiguous abbreviations (--versi, --versio).
+        if len(token) >= len("--versi") and "--version".startswith(token):
+            if argv[k + 1 :]:
+                parser.error(
+                    f"{token} takes no other arguments after it, got {' '.join(argv[k + 1 :])}"
+                )
+            return
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``torchslam`` console script; returns the exit status (argparse's
     exits for errors, ``--help`` and ``--version`` included: nothing raises SystemExit)."""
     parser = _parser()
     try:
+        _check_version_last(parser, sys.argv[1:] if argv is None else list(argv))
         args = parser.parse_args(argv)
         quiet, verbose = getattr(args, "quiet", False), getattr(args, "verbose", False)
         if quiet and verbose:

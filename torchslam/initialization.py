@@ -149,12 +149,7 @@ def odometry_relative_poses(
             f"{tuple(poses_gt.shape)}"
         )
     _checks.check_pose_matrix(fn, "poses_gt", poses_gt)
-    for name, value in (
-        ("rotation_noise_deg", rotation_noise_deg),
-        ("translation_noise", translation_noise),
-    ):
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"{fn}: argument '{name}' must be finite and >= 0, got {value!r}")
+    _check_noise(fn, rotation_noise_deg, translation_noise, seed)
     # T_{i,i+1} = T_i0 T_{i+1,0}⁻¹, the motion from frame i to frame i+1.
     motion = poses_gt[..., :-1, :, :] @ se3.inverse(poses_gt[..., 1:, :, :])
     shape = motion.shape[:-2]
@@ -186,6 +181,7 @@ def chain_relative_poses(relative_poses: Tensor) -> Tensor:
             f"{fn}: argument 'relative_poses' must have shape (..., m-1, 4, 4), got "
             f"{tuple(relative_poses.shape)}"
         )
+    _checks.check_pose_matrix(fn, "relative_poses", relative_poses)
     identity = torch.eye(4, dtype=relative_poses.dtype, device=relative_poses.device)
     chained = [identity.expand(*relative_poses.shape[:-3], 4, 4)]
     for i in range(relative_poses.shape[-3]):
@@ -235,6 +231,18 @@ def average_points(
     valid, weights = _check_edges(
         fn, pose_index, point_index, observations, valid, weights, poses.shape[1], num_points
     )
+    _checks.check_pose_matrix(fn, "poses", poses)
+    if _checks.value_checks_active():
+        # Extra poses no observation refers to mean 'poses' does not belong to these edges.
+        used = torch.zeros(poses.shape[1], dtype=torch.bool, device=pose_index.device)
+        used[pose_index[valid]] = True
+        if not bool(used.all()):
+            unused = (~used).nonzero().flatten().tolist()
+            raise ValueError(
+                f"{fn}: argument 'poses' has m = {poses.shape[1]} frames but no valid "
+                f"observation refers to frame(s) {unused[:_MAX_LISTED]}: it does not match "
+                "'pose_index' (pass the poses of the observed frames)"
+            )
     points, count = _average_points(
         poses, pose_index, point_index, observations, valid, weights, num_points
     )
@@ -326,6 +334,18 @@ def initialize_scene(
     Returns:
         The :class:`Initialization`.
     """
+    from torchslam.data.synthetic import SyntheticScene
+
+    fn = "initialize_scene"
+    if not isinstance(scene, SyntheticScene):
+        hint = "; pass its .scene" if hasattr(scene, "scene") else ""
+        raise TypeError(
+            f"{fn}: argument 'scene' must be a torchslam.data.SyntheticScene, "
+            f"got {_checks.describe(scene)}{hint}"
+        )
+    if method not in ("kabsch", "odometry"):
+        raise ValueError(f"{fn}: argument 'method' must be 'kabsch' or 'odometry', got {method!r}")
+    _check_noise(fn, rotation_noise_deg, translation_noise, seed)
     if method == "kabsch":
         relative = None
     elif method == "odometry":
@@ -348,6 +368,21 @@ def initialize_scene(
         valid=scene.valid,
         relative_poses=relative,
     )
+
+
+def _check_noise(fn: str, rotation_noise_deg: float, translation_noise: float, seed: int) -> None:
+    """The odometry noise amounts (finite, ≥ 0) and seed of ``fn``."""
+    for name, value in (
+        ("rotation_noise_deg", rotation_noise_deg),
+        ("translation_noise", translation_noise),
+    ):
+        try:  # TypeError for a non-number; ValueError (reworded here) for NaN, Inf, < 0
+            _checks.check_real(fn, name, value, low=0)
+        except ValueError:
+            raise ValueError(
+                f"{fn}: argument '{name}' must be finite and >= 0, got {value!r}"
+            ) from None
+    _checks.check_seed(fn, seed)
 
 
 def _check_edges(
@@ -403,8 +438,8 @@ def _check_edges(
                 f"{tuple(weights.shape)}"
             )
     for name, value, minimum in (("num_poses", num_poses, 2), ("num_points", num_points, 1)):
-        if value is not None and (not isinstance(value, int) or value < minimum):
-            raise ValueError(f"{fn}: argument '{name}' must be an int >= {minimum}, got {value!r}")
+        if value is not None:
+            _checks.check_int(fn, name, value, minimum=minimum)
     if _checks.value_checks_active():
         for name, x, bound in (
             ("pose_index", pose_index, num_poses),

@@ -60,7 +60,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from torchslam import _plotting, icp
+from torchslam import _checks, _plotting, icp
 from torchslam.io import _text
 from torchslam.io.ply import read_ply_points, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
@@ -110,8 +110,11 @@ def default_stages(voxel_size: float = 0.002) -> tuple[icp.Stage, ...]:
     Point-to-plane at every level: from starts 30–60° off it converges in a few iterations,
     where point-to-point creeps along the surface. Level 1 runs all hypotheses for 8
     iterations and passes the best 8 on; level 2 the best one; level 3 refines it.
+
+    Raises:
+        TypeError, ValueError: ``voxel_size`` is not a finite number > 0.
     """
-    v = voxel_size
+    v = _checks.check_real("default_stages", "voxel_size", voxel_size, low=0, low_open=True)
     return (
         icp.Stage(
             5 * v,
@@ -186,28 +189,46 @@ class RegisterConfig:
     max_iterations: int = 30
 
     def __post_init__(self) -> None:
-        positive = ("voxel_size", "track_radius", "loss_scale")
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
-                raise ValueError(f"RegisterConfig: '{name}' must be a number > 0, got {value!r}")
-        if not 0 < self.tangent_weight <= 1:
-            raise ValueError(
-                f"RegisterConfig: 'tangent_weight' must lie in (0, 1], got {self.tangent_weight}"
+        fn, kind = "RegisterConfig", "field"
+        for name in ("voxel_size", "track_radius", "loss_scale"):
+            _checks.check_real(fn, name, getattr(self, name), low=0, low_open=True, kind=kind)
+        _checks.check_real(
+            fn, "tangent_weight", self.tangent_weight, low=0, high=1, low_open=True, kind=kind
+        )
+        _checks.check_real(fn, "min_overlap", self.min_overlap, low=0, high=1, kind=kind)
+        for name in ("rotation_tolerance_deg", "translation_tolerance"):
+            _checks.check_real(fn, name, getattr(self, name), low=0, kind=kind)
+        if self.boundary_threshold is not None:
+            _checks.check_real(
+                fn, "boundary_threshold", self.boundary_threshold, low=0, low_open=True, kind=kind
             )
-        if not 0 <= self.min_overlap <= 1:
+        _checks.check_int(fn, "hypotheses", self.hypotheses, minimum=1, kind=kind)
+        _checks.check_int(fn, "normal_neighbors", self.normal_neighbors, minimum=3, kind=kind)
+        _checks.check_int(fn, "rounds", self.rounds, minimum=0, kind=kind)
+        _checks.check_int(fn, "max_iterations", self.max_iterations, minimum=0, kind=kind)
+        if not isinstance(self.loss, str) or self.loss not in ("huber", "cauchy", "none"):
             raise ValueError(
-                f"RegisterConfig: 'min_overlap' must lie in [0, 1], got {self.min_overlap}"
+                f"{fn}: field 'loss' must be 'huber', 'cauchy' or 'none', "
+                f"got {_checks.describe(self.loss)}"
             )
-        for name in ("hypotheses", "normal_neighbors"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"RegisterConfig: '{name}' must be ≥ 1")
-        if self.normal_neighbors < 3:
-            raise ValueError("RegisterConfig: 'normal_neighbors' must be ≥ 3")
-        if self.rounds < 0 or self.max_iterations < 0:
-            raise ValueError("RegisterConfig: 'rounds' and 'max_iterations' must be ≥ 0")
-        if self.loss not in ("huber", "cauchy", "none"):
-            raise ValueError(f"RegisterConfig: unknown loss {self.loss!r}")
+        if self.stages is not None:
+            stages = self.stages
+            if isinstance(stages, (str, bytes)) or not isinstance(stages, Sequence):
+                raise TypeError(
+                    f"{fn}: field 'stages' must be None or a non-empty tuple of icp.Stage, "
+                    f"got {_checks.describe(stages)}"
+                )
+            for k, stage in enumerate(stages):
+                if not isinstance(stage, icp.Stage):
+                    raise TypeError(
+                        f"{fn}: field 'stages' must hold icp.Stage objects, got "
+                        f"{_checks.describe(stage)} at index {k}"
+                    )
+            if not stages:
+                raise ValueError(
+                    f"{fn}: field 'stages' must be None or a non-empty tuple of icp.Stage, got ()"
+                )
+            object.__setattr__(self, "stages", tuple(stages))
 
     def pairwise_stages(self) -> tuple[icp.Stage, ...]:
         """The pairwise ICP levels in force."""
@@ -240,23 +261,43 @@ def load_scans(
 
     Raises:
         OSError: a file is missing or unreadable.
-        ValueError: fewer than 2 files, a repeated name, a malformed PLY or too few points.
+        TypeError: ``paths`` is a single path (wrap it in a list) or holds a non-path;
+            ``dtype`` is not float32/float64.
+        ValueError: fewer than 2 files, a repeated name, a directory, a malformed PLY or too
+            few points.
     """
+    fn = "load_scans"
+    if isinstance(paths, (str, bytes, os.PathLike)):
+        raise TypeError(
+            f"{fn}: argument 'paths' must be a list of paths, got a single "
+            f"{type(paths).__name__} {os.fsdecode(os.fspath(paths))!r}; wrap it in a list"
+        )
+    if not isinstance(paths, Sequence):
+        raise TypeError(
+            f"{fn}: argument 'paths' must be a list of paths, got {_checks.describe(paths)}"
+        )
+    paths = [_checks.check_path(fn, p, f"paths[{k}]") for k, p in enumerate(paths)]
+    _checks.check_float_dtype(fn, dtype)
     if len(paths) < 2:
-        raise ValueError(f"need at least 2 scans, got {len(paths)}")
+        raise ValueError(f"{fn}: argument 'paths' must hold at least 2 scans, got {len(paths)}")
     names = [scan_name(p) for p in paths]
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
-        raise ValueError(f"scan names must be distinct, repeated: {', '.join(repeated)}")
+        raise ValueError(
+            f"{fn}: argument 'paths' must give distinct scan names (base names without "
+            f"extension), repeated: {', '.join(repeated)}"
+        )
     clouds = []
     for path in paths:
+        if os.path.isdir(path):
+            raise ValueError(f"{fn}: argument 'paths' holds a directory, not a scan: {path}")
         if not os.path.isfile(path):
-            raise FileNotFoundError(f"no such scan file: {os.fspath(path)}")
+            raise FileNotFoundError(f"{fn}: no such scan file: {path}")
         cloud = read_ply_points(path, dtype=dtype)
         if cloud.shape[0] < 10:
-            raise ValueError(f"{os.fspath(path)}: only {cloud.shape[0]} points, need ≥ 10")
+            raise ValueError(f"{fn}: {path}: only {cloud.shape[0]} points, need ≥ 10")
         if not bool(torch.isfinite(cloud).all()):
-            raise ValueError(f"{os.fspath(path)}: non-finite vertex coordinates")
+            raise ValueError(f"{fn}: {path}: non-finite vertex coordinates")
         clouds.append(cloud)
     return names, clouds
 
@@ -271,22 +312,40 @@ def write_poses(
         names: scan names, m of them (no white space).
         poses: T_0i mapping each scan into the reference frame, shape (m, 4, 4).
         frame: name of the reference scan, for the header comment.
+
+    Raises:
+        TypeError: a wrong type (``names`` must be a sequence of str, ``poses`` a float tensor
+            or numpy array).
+        ValueError: names that are empty, hold white space, start with ``#`` (a comment line
+            on reading) or repeat; ``poses`` of the wrong shape, non-finite or not rigid.
     """
-    if poses.shape != (len(names), 4, 4):
+    fn = "write_poses"
+    path = _checks.check_path(fn, path)
+    names = _checks.check_names(fn, names)
+    if not names:
+        raise ValueError(f"{fn}: argument 'names' must hold at least one name, got none")
+    if isinstance(poses, np.ndarray):
+        poses = torch.from_numpy(poses)
+    _checks.check_batched(
+        fn, "poses", poses, ("m",), (4, 4), sizes=(len(names),), against="'names'"
+    )
+    _checks.check_pose_matrix(fn, "poses", poses)
+    if frame is not None and (
+        not isinstance(frame, str) or not frame or "\n" in frame or "\r" in frame
+    ):
         raise ValueError(
-            f"write_poses: 'poses' must have shape ({len(names)}, 4, 4), got {tuple(poses.shape)}"
+            f"write_poses: argument 'frame' must be None or a one-line name, "
+            f"got {_checks.describe(frame)}"
         )
-    q = convert.matrix_to_quaternion(poses[:, :3, :3].to(torch.float64))
+    q = convert.matrix_to_quaternion(poses[:, :3, :3].detach().to(torch.float64))
     q = torch.where(q[:, :1] < 0, -q, q)  # qw ≥ 0
-    t = poses[:, :3, 3].to(torch.float64)
+    t = poses[:, :3, 3].detach().to(torch.float64)
     lines = [
         "# torchslam register poses: name tx ty tz qw qx qy qz",
-        f"# T_0i maps scan coordinates into the frame of {frame or names[0]}: "
+        f"# T_0i maps scan coordinates into the frame of {frame or (names[0] if names else '-')}: "
         "p = R(q) p_scan + t (Hamilton quaternion, scalar first)",
     ]
     for name, ti, qi in zip(names, t.tolist(), q.tolist(), strict=True):
-        if not name or any(c.isspace() for c in name):
-            raise ValueError(f"write_poses: scan name {name!r} must be non-empty, no spaces")
         lines.append(" ".join([name, *(repr(float(x)) for x in (*ti, *qi))]))
     Path(path).write_text("\n".join(lines) + "\n")
 
@@ -300,10 +359,14 @@ def read_poses(
         ValueError: a malformed line (field count, a number that is not a finite decimal, a
             zero quaternion), a repeated name, no poses, bytes that are not UTF-8 text; the
             message names the file and the line.
+        TypeError: ``path`` is not a str / os.PathLike or ``dtype`` not float32/float64.
         OSError: the file cannot be read.
     """
-    fn, where = "read_poses", os.fspath(path)
-    with open(path, "rb") as f:
+    fn = "read_poses"
+    where = _checks.check_path(fn, path, is_file=True)
+    _checks.check_float_dtype(fn, dtype)
+    largest = torch.finfo(dtype).max
+    with open(where, "rb") as f:
         lines = _text.decode_lines(f.read(), path, fn, "text pose file")
     names: list[str] = []
     rows: list[list[float]] = []
@@ -321,6 +384,12 @@ def read_poses(
             q = _text.unit_quaternion(values[3:], "quaternion (qw, qx, qy, qz)")
         except _text.TokenError as error:
             raise ValueError(f"{fn}: {where}: line {number}: {error}") from None
+        too_large = [v for v in values[:3] if abs(v) > largest]
+        if too_large:
+            raise ValueError(
+                f"{fn}: {where}: line {number}: translation {too_large[0]!r} overflows {dtype} "
+                f"(largest {largest:.4g}); read with dtype=torch.float64"
+            )
         if words[0] in names:
             raise ValueError(f"{fn}: {where}: line {number}: scan {words[0]!r} listed twice")
         names.append(words[0])
@@ -330,6 +399,80 @@ def read_poses(
     values_t = torch.tensor(rows, dtype=dtype)
     R = convert.quaternion_to_matrix(values_t[:, 3:])
     return names, se3.from_rotation_translation(R, values_t[:, :3])
+
+
+# ----------------------------------------------------------------------------- argument checks
+
+
+def _check_clouds(
+    fn: str, clouds: object, *, minimum: int = 1, min_points: int = 1, name: str = "clouds"
+) -> list[Tensor]:
+    """A list of ≥ ``minimum`` float clouds (N_i, 3), N_i ≥ ``min_points``, of one dtype and
+    device, finite when value checks are active."""
+    if isinstance(clouds, Tensor) or not isinstance(clouds, Sequence) or isinstance(clouds, str):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a list of tensors of shape (N_i, 3), "
+            f"got {_checks.describe(clouds)}"
+        )
+    out = list(clouds)
+    if len(out) < minimum:
+        raise ValueError(f"{fn}: argument '{name}' must hold ≥ {minimum} clouds, got {len(out)}")
+    for k, cloud in enumerate(out):
+        if isinstance(cloud, np.ndarray):
+            raise TypeError(
+                f"{fn}: argument '{name}' must hold torch tensors, got a numpy array at index "
+                f"{k}; convert with torch.from_numpy"
+            )
+        _checks.check_batched(fn, f"{name}[{k}]", cloud, ("N",), (3,))
+        if cloud.shape[0] < min_points:
+            raise ValueError(
+                f"{fn}: argument '{name}[{k}]' must have ≥ {min_points} points, "
+                f"got shape {tuple(cloud.shape)}"
+            )
+        if k:
+            _checks.check_same_kind(fn, **{f"{name}[0]": out[0], f"{name}[{k}]": cloud})
+        _checks.check_finite(fn, f"{name}[{k}]", cloud)
+    return out
+
+
+def _check_poses(fn: str, poses: object, m: int, against: str = "'clouds'") -> Tensor:
+    """T_0i of shape (m, 4, 4), rigid when value checks are active."""
+    _checks.check_batched(fn, "poses", poses, ("m",), (4, 4), sizes=(m,), against=against)
+    assert isinstance(poses, Tensor)
+    _checks.check_pose_matrix(fn, "poses", poses)
+    return poses
+
+
+def _check_config(fn: str, config: object) -> RegisterConfig:
+    if config is None:
+        return RegisterConfig()
+    if not isinstance(config, RegisterConfig):
+        raise TypeError(
+            f"{fn}: argument 'config' must be a RegisterConfig or None, "
+            f"got {_checks.describe(config)}; build one with RegisterConfig(**options)"
+        )
+    return config
+
+
+def _check_pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
+    """Scan pairs (i, k), 0 ≤ i, k < m, i ≠ k, as a list of int tuples."""
+    if isinstance(pairs, (str, Tensor)) or not isinstance(pairs, Sequence):
+        raise TypeError(
+            f"{fn}: argument 'pairs' must be a list of (i, k) index pairs, "
+            f"got {_checks.describe(pairs)}"
+        )
+    out = []
+    for n, pair in enumerate(pairs):
+        if isinstance(pair, (str, Tensor)) or not isinstance(pair, Sequence) or len(pair) != 2:
+            raise ValueError(
+                f"{fn}: argument 'pairs' must hold (i, k) index pairs, got "
+                f"{_checks.describe(pair)} at index {n}"
+            )
+        i, k = (_checks.check_int(fn, f"pairs[{n}]", v, minimum=0, maximum=m - 1) for v in pair)
+        if i == k:
+            raise ValueError(f"{fn}: argument 'pairs' pairs scan {i} with itself at index {n}")
+        out.append((i, k))
+    return out
 
 
 # ----------------------------------------------------------------------------- pairwise chain
@@ -366,9 +509,13 @@ def register_chain(
     Returns:
         :class:`ChainResult`; poses in the frame of scan 0.
     """
-    config = RegisterConfig() if config is None else config
-    if len(clouds) < 2:
-        raise ValueError(f"register_chain: need at least 2 clouds, got {len(clouds)}")
+    fn = "register_chain"
+    clouds = _check_clouds(fn, clouds, minimum=2, min_points=3)
+    config = _check_config(fn, config)
+    if names is not None:
+        names = _checks.check_names(fn, names, count=len(clouds), words=False)
+    if progress is not None and not callable(progress):
+        raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     stages = config.pairwise_stages()
     rotations = icp.rotations_uniform(config.hypotheses, dtype=clouds[0].dtype)
     relative, results, seconds = [], [], []
@@ -414,7 +561,12 @@ def overlapping_pairs(
         ``(pairs, overlap)``: the kept pairs (i < k) and the overlap matrix (m, m) (row i:
         fraction of scan i's points near scan k; diagonal 1).
     """
+    fn = "overlapping_pairs"
+    clouds = _check_clouds(fn, clouds)
     m = len(clouds)
+    _check_poses(fn, poses, m)
+    distance = _checks.check_real(fn, "distance", distance, low=0, low_open=True)
+    _checks.check_real(fn, "min_overlap", min_overlap, low=0, high=1)
     world = [se3.act(poses[i], clouds[i]).detach().cpu().numpy() for i in range(m)]
     trees = [cKDTree(w) for w in world]
     overlap = np.eye(m)
@@ -440,15 +592,32 @@ def boundary_mask(points: Tensor, neighbors: int = 12, threshold: float = 0.3) -
     variants reject correspondences on boundaries for that reason (Turk & Levoy 1994).
 
     Args:
-        points: cloud, shape (N, 3), N ≥ 2.
-        neighbors: k, including the point itself, clipped to N.
+        points: cloud, shape (N, 3), N ≥ 2, finite (a tensor or a numpy array).
+        neighbors: k ≥ 3, including the point itself, clipped to N.
         threshold: offset ratio, > 0.
 
     Returns:
-        Mask, bool, shape (N,), on ``points``' device.
+        Mask, bool, shape (N,), on ``points``' device (CPU for a numpy array).
     """
-    k = min(neighbors, points.shape[0])
+    fn = "boundary_mask"
+    if isinstance(points, np.ndarray):
+        if not np.issubdtype(points.dtype, np.floating):
+            raise TypeError(f"{fn}: argument 'points' must be floating point, got {points.dtype}")
+        points = torch.from_numpy(np.asarray(points, dtype=np.float64))
+    _checks.check_batched(fn, "points", points, ("N",), (3,))
+    if points.shape[0] < 2:
+        raise ValueError(
+            f"{fn}: argument 'points' must have ≥ 2 points, got shape {tuple(points.shape)}"
+        )
+    neighbors = _checks.check_int(fn, "neighbors", neighbors, minimum=3)
+    threshold = _checks.check_real(fn, "threshold", threshold, low=0, low_open=True)
     x = points.detach().cpu().numpy().astype(np.float64, copy=False)
+    if not np.isfinite(x).all():
+        bad = int(np.flatnonzero(~np.isfinite(x).all(-1))[0])
+        raise ValueError(
+            f"{fn}: argument 'points' contains non-finite values (NaN or Inf), first at point {bad}"
+        )
+    k = min(neighbors, points.shape[0])
     distance, index = cKDTree(x).query(x, k=k)
     local = x[index]  # (N, k, 3)
     centroid = local.mean(1)
@@ -473,6 +642,12 @@ def information_matrices(normals: Tensor, tangent_weight: float) -> Tensor:
     Returns:
         Information matrices, shape (E, 3, 3), symmetric positive definite (eigenvalues 1, τ, τ).
     """
+    fn = "information_matrices"
+    _checks.check_batched(fn, "normals", normals, ("E",), (3,))
+    _checks.check_finite(fn, "normals", normals)
+    tangent_weight = _checks.check_real(
+        fn, "tangent_weight", tangent_weight, low=0, high=1, low_open=True
+    )
     outer = normals[:, :, None] * normals[:, None, :]
     eye = torch.eye(3, dtype=normals.dtype, device=normals.device)
     return outer + tangent_weight * (eye - outer)
@@ -575,8 +750,15 @@ def refine(
     Returns:
         :class:`RefineResult`, poses in the frame of scan 0 (its pose is the gauge).
     """
-    config = RegisterConfig() if config is None else config
-    poses = relative_to_first(poses.detach().clone(), 0)
+    fn = "refine"
+    clouds = _check_clouds(fn, clouds, minimum=2, min_points=2)
+    _check_poses(fn, poses, len(clouds))
+    config = _check_config(fn, config)
+    if progress is not None and not callable(progress):
+        raise TypeError(f"{fn}: argument 'progress' must be callable or None")
+    if pairs is not None:
+        pairs = _check_pairs(fn, pairs, len(clouds))
+    poses = relative_to_first(poses.detach().clone().to(clouds[0].dtype), 0)
     if pairs is None:
         pairs, _ = overlapping_pairs(clouds, poses, config.voxel_size, config.min_overlap)
     pairs = list(pairs)
@@ -649,11 +831,19 @@ def joint_cost(
     Returns:
         The cost (nan when the refinement has no tracks).
     """
-    config = RegisterConfig() if config is None else config
+    fn = "joint_cost"
+    if not isinstance(refinement, RefineResult):
+        raise TypeError(
+            f"{fn}: argument 'refinement' must be a RefineResult, "
+            f"got {_checks.describe(refinement)}"
+        )
+    config = _check_config(fn, config)
+    m = len(refinement.track_clouds)
+    _check_poses(fn, poses, m, against="the refinement's scans")
     tracks = refinement.tracks
     if tracks is None:
         return math.nan
-    m = len(refinement.track_clouds)
+    poses = poses.to(tracks.observations.dtype)
     points = _track_points(tracks, poses)
     fixed = torch.ones(1, m, dtype=torch.bool)
     problem = _problem(tracks, poses, refinement.track_normals, config, fixed, points)
@@ -681,7 +871,24 @@ def plane_distances(
     Returns:
         One distance per corresponding point, float64 array (K,), in the clouds' units.
     """
+    return _plane_distances("plane_distances", clouds, poses, pairs, distance, normal_neighbors)
+
+
+def _plane_distances(
+    fn: str,
+    clouds: Sequence[Tensor],
+    poses: Tensor,
+    pairs: Sequence[tuple[int, int]],
+    distance: float,
+    normal_neighbors: int,
+) -> np.ndarray:
+    clouds = _check_clouds(fn, clouds, min_points=3)
     m = len(clouds)
+    _check_poses(fn, poses, m)
+    poses = poses.to(clouds[0].dtype)
+    pairs = _check_pairs(fn, pairs, m)
+    distance = _checks.check_real(fn, "distance", distance, low=0, low_open=True)
+    normal_neighbors = _checks.check_int(fn, "normal_neighbors", normal_neighbors, minimum=3)
     normals = [icp.estimate_normals(c, min(normal_neighbors, len(c))) for c in clouds]
     world = [se3.act(poses[i], clouds[i]).detach().cpu().numpy() for i in range(m)]
     world_normals = [(normals[i] @ poses[i, :3, :3].T).detach().cpu().numpy() for i in range(m)]
@@ -719,7 +926,7 @@ def alignment_residual(
     Returns:
         The RMS distance, in the clouds' units (nan when no point corresponds).
     """
-    d = plane_distances(clouds, poses, pairs, distance, normal_neighbors)
+    d = _plane_distances("alignment_residual", clouds, poses, pairs, distance, normal_neighbors)
     return float(np.sqrt(np.mean(d**2))) if len(d) else math.nan
 
 
@@ -774,19 +981,30 @@ def register(
 
     Returns:
         :class:`Registration`.
+
+    Raises:
+        TypeError, ValueError: bad arguments (names must be distinct single words, as
+            :func:`write_poses` writes them; clouds float tensors (N_i, 3) of one dtype and
+            device, finite; ``frame`` an int index or a name among ``names``).
     """
-    config = RegisterConfig() if config is None else config
-    names = list(names)
+    fn = "register"
+    names = _checks.check_names(fn, names)
+    clouds = _check_clouds(fn, clouds, minimum=2, min_points=3)
     if len(names) != len(clouds):
-        raise ValueError(f"register: {len(names)} names for {len(clouds)} clouds")
-    if len(clouds) < 2:
-        raise ValueError(f"register: need at least 2 scans, got {len(clouds)}")
+        raise ValueError(
+            f"{fn}: argument 'names' must hold one name per cloud, got {len(names)} names for "
+            f"{len(clouds)} clouds"
+        )
+    config = _check_config(fn, config)
+    if progress is not None and not callable(progress):
+        raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if isinstance(frame, str):
         if frame not in names:
-            raise ValueError(f"register: reference scan {frame!r} is not among the scans")
+            raise ValueError(
+                f"{fn}: argument 'frame' must be an index or one of the names, got {frame!r}"
+            )
         frame = names.index(frame)
-    if not 0 <= frame < len(names):
-        raise ValueError(f"register: reference index {frame} out of range")
+    frame = _checks.check_int(fn, "frame", frame, minimum=0, maximum=len(names) - 1)
     _check_point_counts(names, clouds, config)
     say = progress or (lambda _line: None)
     seconds: dict[str, float] = {}
@@ -883,7 +1101,37 @@ def error_table(
         ``(text, summary)`` with summary[label] = {"rot_mean", "rot_max", "trans_mean",
         "trans_max"} (degrees, mm).
     """
-    include = [i for i in range(len(names)) if i != frame] if include is None else list(include)
+    fn = "error_table"
+    names = _checks.check_names(fn, names, words=False)
+    m = len(names)
+    if m == 0:
+        raise ValueError(f"{fn}: argument 'names' must hold at least one name, got none")
+    frame = _checks.check_int(fn, "frame", frame, minimum=0, maximum=m - 1)
+    _check_poses(fn, reference, m, against="'names'")
+    if not isinstance(columns, dict) or not columns:
+        raise TypeError(
+            f"{fn}: argument 'columns' must be a non-empty dict label → poses (m, 4, 4), "
+            f"got {_checks.describe(columns)}"
+        )
+    for label, poses in columns.items():
+        if not isinstance(label, str):
+            raise TypeError(f"{fn}: argument 'columns' must have str labels, got {label!r}")
+        _checks.check_batched(fn, f"columns[{label!r}]", poses, ("m",), (4, 4), sizes=(m,))
+        _checks.check_pose_matrix(fn, f"columns[{label!r}]", poses)
+    if include is None:
+        include = [i for i in range(m) if i != frame]
+    else:
+        if isinstance(include, (str, Tensor)) or not isinstance(include, Sequence):
+            raise TypeError(
+                f"{fn}: argument 'include' must be None or a list of scan indices, "
+                f"got {_checks.describe(include)}"
+            )
+        include = [
+            _checks.check_int(fn, f"include[{k}]", i, minimum=0, maximum=m - 1)
+            for k, i in enumerate(include)
+        ]
+    if not include:
+        raise ValueError(f"{fn}: no scans to summarize ('include' is empty or only 'frame')")
     errors = {}
     for label, poses in columns.items():
         rotation, translation = pose_errors(poses.to(reference.dtype), reference, frame)
@@ -932,11 +1180,14 @@ _PALETTE = np.array(
 
 def scan_colors(count: int) -> np.ndarray:
     """One RGB colour (uint8) per scan, shape (count, 3) (matplotlib's tab10, repeating)."""
+    count = _checks.check_int("scan_colors", "count", count, minimum=0)
     return _PALETTE[np.arange(count) % len(_PALETTE)]
 
 
 def merged_cloud(clouds: Sequence[Tensor], poses: Tensor) -> tuple[np.ndarray, np.ndarray]:
     """All clouds moved into the common frame, with one colour per scan: (N, 3), (N, 3) uint8."""
+    clouds = _check_clouds("merged_cloud", clouds)
+    poses = _check_poses("merged_cloud", poses, len(clouds)).to(clouds[0].dtype)
     colors = scan_colors(len(clouds))
     points = [se3.act(poses[i], c).detach().cpu().numpy() for i, c in enumerate(clouds)]
     rgb = [np.repeat(colors[i][None], len(p), axis=0) for i, p in enumerate(points)]

@@ -36,7 +36,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchslam.data.synthetic import SyntheticScene
+from torchslam import _checks
+from torchslam.data.synthetic import MAX_TABLE_ENTRIES, SyntheticScene
 from torchslam.lie import se3, so3
 
 __all__ = ["LoopScene", "make_loop_scene"]
@@ -164,6 +165,7 @@ def make_loop_scene(
         radius,
         seed,
         dtype,
+        device,
     )
     gen = torch.Generator().manual_seed(seed)
     f64 = torch.float64
@@ -245,26 +247,27 @@ def _check_arguments(
     radius: float,
     seed: int,
     dtype: torch.dtype,
+    device: torch.device | str | None,
 ) -> None:
     fn = "make_loop_scene"
-    for name, value in (
-        ("num_poses", num_poses),
-        ("points_per_frame", points_per_frame),
-        ("window", window),
-        ("seed", seed),
-    ):
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise TypeError(f"{fn}: argument '{name}' must be an int, got {value!r}")
     for name, value, minimum in (
         ("num_poses", num_poses, 3),
         ("points_per_frame", points_per_frame, 3),
+        ("window", window, None),
     ):
-        if value < minimum:
-            raise ValueError(f"{fn}: argument '{name}' must be an int >= {minimum}, got {value!r}")
+        _checks.check_int(fn, name, value, minimum=minimum)
+    _checks.check_seed(fn, seed)
     if not 2 <= window <= num_poses - 1:
         raise ValueError(
             f"{fn}: argument 'window' must be an int in [2, num_poses - 1] = "
             f"[2, {num_poses - 1}], got {window!r}"
+        )
+    entries = num_poses * (num_poses - 1) * points_per_frame
+    if entries > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"{fn}: num_poses · (num_poses - 1) · points_per_frame = {entries} exceeds "
+            f"{MAX_TABLE_ENTRIES}: the generator builds a dense (m, n) visibility table; "
+            "use fewer poses or points per frame"
         )
     for name, value, positive in (
         ("noise_std", noise_std, False),
@@ -274,19 +277,9 @@ def _check_arguments(
         ("loop_translation", loop_translation, False),
         ("radius", radius, True),
     ):
-        expected = "> 0" if positive else ">= 0"
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise TypeError(
-                f"{fn}: argument '{name}' must be a real number {expected}, got {value!r}"
-            )
-        if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
-            raise ValueError(
-                f"{fn}: argument '{name}' must be a finite number {expected}, got {value!r}"
-            )
-    if dtype not in (torch.float32, torch.float64):
-        raise TypeError(
-            f"{fn}: argument 'dtype' must be torch.float32 or torch.float64, got {dtype}"
-        )
+        _checks.check_real(fn, name, value, low=0, low_open=positive)
+    _checks.check_float_dtype(fn, dtype)
+    _checks.check_device(fn, device)
 
 
 def _closed_loop(m: int, radius: float, gen: torch.Generator) -> tuple[Tensor, Tensor]:

@@ -43,6 +43,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from torchslam import _checks
 from torchslam.lie import se3, so3
 
 __all__ = ["BENCHMARK_CASES", "SyntheticScene", "benchmark_case", "make_scene"]
@@ -57,6 +58,9 @@ _WALK_STEP = 0.5  # distance between successive random-walk positions
 _POINT_DISTANCE = (1.0, 4.0)  # range of a point's distance to its anchor frame's sensor
 _MIN_SHARED = 3  # points shared by successive frames (guarantee 1)
 _MIN_VIEWS = 2  # frames seeing each point (guarantee 2)
+# Largest B·m·n of make_scene: its dense (B, m, n) tables and per-observation (B, E, 3, 3)
+# rotations take about 10 GB of host memory there.
+MAX_TABLE_ENTRIES = 5 * 10**7
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,7 +179,8 @@ def make_scene(
         outlier_fraction: fraction of observations replaced by outliers, in [0, 1).
         rotation_per_frame_deg: heading change (loop, helix) or rotation angle (random walk)
             between successive frames, in degrees, ≥ 0.
-        seed: seed of the CPU ``torch.Generator`` everything is drawn from.
+        seed: seed of the CPU ``torch.Generator`` everything is drawn from, an int in
+            [-2**63, 2**64 - 1].
         dtype: float32 or float64 (default) of the returned tensors.
         device: device of the returned tensors.
 
@@ -183,8 +188,10 @@ def make_scene(
         The :class:`SyntheticScene`.
 
     Raises:
-        ValueError: on an argument out of range or an unknown option name.
-        TypeError: on an unsupported dtype.
+        ValueError: on an argument out of range (NaN included) or an unknown option name; a
+            scene with B·m·n above :data:`MAX_TABLE_ENTRIES`; an unparsable device string.
+        TypeError: on an argument of the wrong type (e.g. a float count or seed, a str number)
+            or an unsupported dtype.
     """
     _check_arguments(
         num_poses,
@@ -197,7 +204,9 @@ def make_scene(
         noise_std,
         outlier_fraction,
         rotation_per_frame_deg,
+        seed,
         dtype,
+        device,
     )
     gen = torch.Generator().manual_seed(seed)
     f64 = torch.float64
@@ -348,7 +357,9 @@ def _check_arguments(
     noise_std: float,
     outlier_fraction: float,
     rotation_per_frame_deg: float,
+    seed: int,
     dtype: torch.dtype,
+    device: torch.device | str | None,
 ) -> None:
     fn = "make_scene"
     for name, value, minimum in (
@@ -356,8 +367,15 @@ def _check_arguments(
         ("num_points", num_points, 3),
         ("batch_size", batch_size, 1),
     ):
-        if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-            raise ValueError(f"{fn}: argument '{name}' must be an int >= {minimum}, got {value!r}")
+        _checks.check_int(fn, name, value, minimum=minimum)
+    entries = batch_size * num_poses * num_points
+    if entries > MAX_TABLE_ENTRIES:
+        raise ValueError(
+            f"{fn}: batch_size · num_poses · num_points = {batch_size} · {num_poses} · "
+            f"{num_points} = {entries} exceeds {MAX_TABLE_ENTRIES}: the generator builds dense "
+            "(B, m, n) visibility and distance tables (tens of GB at that size); generate "
+            "smaller scenes or several batches"
+        )
     if trajectory not in ("loop", "helix", "random_walk"):
         raise ValueError(
             f"{fn}: argument 'trajectory' must be 'loop', 'helix' or 'random_walk', "
@@ -367,20 +385,24 @@ def _check_arguments(
         raise ValueError(
             f"{fn}: argument 'visibility' must be 'fraction' or 'range', got {visibility!r}"
         )
-    checks = (
-        ("visible_fraction", visible_fraction, 0 < visible_fraction <= 1, "in (0, 1]"),
-        ("max_range", max_range, max_range > 0, "> 0"),
-        ("noise_std", noise_std, noise_std >= 0, ">= 0"),
-        ("outlier_fraction", outlier_fraction, 0 <= outlier_fraction < 1, "in [0, 1)"),
-        ("rotation_per_frame_deg", rotation_per_frame_deg, rotation_per_frame_deg >= 0, ">= 0"),
-    )
-    for name, value, ok, expected in checks:
-        if not (ok and math.isfinite(value)):
-            raise ValueError(f"{fn}: argument '{name}' must be {expected}, got {value!r}")
-    if dtype not in (torch.float32, torch.float64):
-        raise TypeError(
-            f"{fn}: argument 'dtype' must be torch.float32 or torch.float64, got {dtype}"
-        )
+    for name, value, low, high, low_open, high_open, expected in (
+        ("visible_fraction", visible_fraction, 0, 1, True, False, "in (0, 1]"),
+        ("max_range", max_range, 0, None, True, False, "> 0"),
+        ("noise_std", noise_std, 0, None, False, False, ">= 0"),
+        ("outlier_fraction", outlier_fraction, 0, 1, False, True, "in [0, 1)"),
+        ("rotation_per_frame_deg", rotation_per_frame_deg, 0, None, False, False, ">= 0"),
+    ):
+        try:  # TypeError for a non-number; ValueError (reworded here) for NaN, Inf, range
+            _checks.check_real(
+                fn, name, value, low=low, high=high, low_open=low_open, high_open=high_open
+            )
+        except ValueError:
+            raise ValueError(
+                f"{fn}: argument '{name}' must be {expected} (finite), got {value!r}"
+            ) from None
+    _checks.check_seed(fn, seed)
+    _checks.check_float_dtype(fn, dtype)
+    _checks.check_device(fn, device)
 
 
 def _rotation_about(axis: int, angle: Tensor) -> Tensor:

@@ -201,8 +201,18 @@ def parse_g2o(
 
     Raises:
         ValueError: for a malformed line, an unknown tag, an inconsistent graph; the message
-            names ``source`` and the line number (module docstring, "Other rules").
+            names ``source`` and the line number (module docstring, "Other rules"), or a value
+            that overflows ``dtype``.
+        TypeError: ``text`` or ``source`` is not a str, ``dtype`` not float32/float64.
     """
+    from torchslam import _checks  # local: keeps this module's imports untouched
+
+    _checks.check_float_dtype("parse_g2o", dtype)
+    for name, value in (("text", text), ("source", source)):
+        if not isinstance(value, str):
+            raise TypeError(
+                f"parse_g2o: argument '{name}' must be a str, got {_checks.describe(value)}"
+            )
     vertex_ids: list[int] = []
     vertex_values: list[list[float]] = []
     vertex_lines: list[int] = []
@@ -296,9 +306,20 @@ def parse_g2o(
         if index < 0:
             raise error(lineno, f"FIX refers to vertex id {vid}, which no VERTEX line defines")
 
-    vertex_array = np.asarray(vertex_values, dtype=np.float64)[order]
+    vertex_array = np.asarray(vertex_values, dtype=np.float64)
     width = _FIELD_COUNTS["EDGE_SE3:QUAT" if dimension == 3 else "EDGE_SE2"] - 2
     edge_array = np.asarray(edge_values, dtype=np.float64).reshape(len(edge_values), width)
+    largest = torch.finfo(dtype).max
+    for array, lines in ((vertex_array, vertex_lines), (edge_array, edge_lines)):
+        too_large = np.abs(array) > largest
+        if too_large.any():
+            row, column = np.argwhere(too_large)[0]
+            raise error(
+                lines[row],
+                f"value {float(array[row, column])!r} overflows {dtype} (largest {largest:.4g}); "
+                "read with dtype=torch.float64",
+            )
+    vertex_array = vertex_array[order]
     size = 6 if dimension == 3 else 3
     bad = _not_semidefinite(
         _symmetric_from_upper(edge_array[:, width - size * (size + 1) // 2 :], size)
@@ -342,10 +363,15 @@ def read_g2o(path: str | os.PathLike[str], *, dtype: torch.dtype = torch.float64
     Raises:
         ValueError: malformed line or unknown tag, or a file that is not UTF-8 text, naming the
             file and the line number.
+        TypeError: ``path`` is not a str / os.PathLike or ``dtype`` not float32/float64.
         OSError: the file cannot be read.
     """
+    from torchslam import _checks  # local: keeps this module's imports untouched
+
+    path = _checks.check_path("read_g2o", path, is_file=True)
+    _checks.check_float_dtype("read_g2o", dtype)
     lines = _text.decode_lines(Path(path).read_bytes(), path, "read_g2o", "text g2o file")
-    return parse_g2o("\n".join(lines), source=os.fspath(path), dtype=dtype)
+    return parse_g2o("\n".join(lines), source=path, dtype=dtype)
 
 
 def _number(x: float) -> str:

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam import _checks
 from torchslam.io import _text
 
 __all__ = [
@@ -621,10 +622,10 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
 
     Args:
         path: file to read.
-        elements: names of the elements to parse; ``None`` parses all. Reading stops after the
-            last requested element, so ``elements=("vertex",)`` skips the 204800-line
-            ``range_grid`` of a Stanford scan. A requested name that the file does not declare
-            raises ``ValueError``.
+        elements: names of the elements to parse (a single str names one); ``None`` parses
+            all. Reading stops after the last requested element, so ``elements=("vertex",)``
+            skips the 204800-line ``range_grid`` of a Stanford scan. A requested name that the
+            file does not declare raises ``ValueError``.
 
     Returns:
         :class:`PlyData`; ``data["vertex"]["x"]`` etc. keep the file's scalar types.
@@ -633,8 +634,26 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
         ValueError: malformed header (names the header line), or truncated / malformed data,
             a value outside its declared type, a non-finite float, data beyond the declared
             elements (names the element and, for ascii, the file line; module docstring).
-        OSError: the file cannot be read.
+        TypeError: ``path`` is not a str / os.PathLike, ``elements`` not a str or a sequence
+            of str.
+        OSError: the file cannot be read (FileNotFoundError for a missing one).
     """
+    fn = "read_ply"
+    path = _checks.check_path(fn, path, is_file=True)
+    if isinstance(elements, str):
+        elements = (elements,)
+    elif elements is not None:
+        if not isinstance(elements, (Sequence, set, frozenset)):
+            raise TypeError(
+                f"{fn}: argument 'elements' must be None, a str or a sequence of str, "
+                f"got {_checks.describe(elements)}"
+            )
+        for item in elements:
+            if not isinstance(item, str):
+                raise TypeError(
+                    f"{fn}: argument 'elements' must hold str element names, "
+                    f"got {_checks.describe(item)}"
+                )
     with open(path, "rb") as f:
         raw = f.read()
     match = _END_HEADER.search(raw)
@@ -679,7 +698,11 @@ def read_ply_points(path: str | os.PathLike, *, dtype: torch.dtype = torch.float
     Raises:
         ValueError: as :func:`read_ply`, or no ``vertex`` element with x, y, z (naming the
             file); a coordinate that overflows ``dtype`` (e.g. 1e300 for float32).
+        TypeError: ``dtype`` is not torch.float32 / torch.float64 (an integer dtype would
+            truncate the coordinates), ``path`` not a str / os.PathLike.
     """
+    _checks.check_float_dtype("read_ply_points", dtype)
+    path = _checks.check_path("read_ply_points", path, is_file=True)
     data = read_ply(path, elements=("vertex",))
     vertex = data.data["vertex"]
     missing = [k for k in ("x", "y", "z") if k not in vertex]
@@ -716,6 +739,7 @@ def write_ply(
         ValueError: wrong shapes, non-finite points (or points that overflow ``float``), colours
             outside 0..255, comments with newlines, an unknown format.
     """
+    path = _checks.check_path("write_ply", path)
     pts = points.detach().cpu().numpy() if isinstance(points, Tensor) else np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"write_ply: argument 'points' must have shape (N, 3), got {pts.shape}")

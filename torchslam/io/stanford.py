@@ -36,7 +36,8 @@ __all__ = [
 
 def scan_name(path: str | os.PathLike) -> str:
     """Scan name of a file: its base name without the extension, e.g. ``"bun045"``."""
-    return os.path.splitext(os.path.basename(os.fspath(path)))[0]
+    path = _checks.check_path("scan_name", path)
+    return os.path.splitext(os.path.basename(path))[0]
 
 
 def read_conf(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) -> dict[str, Tensor]:
@@ -55,10 +56,14 @@ def read_conf(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) ->
         ValueError: a malformed line: wrong keyword or field count, a number that is not a
             finite decimal (``nan``, ``inf``), a zero quaternion, a repeated scan, bytes that
             are not UTF-8 text (the message names the file and line); or no ``bmesh`` line.
+        TypeError: ``path`` is not a str / os.PathLike or ``dtype`` not float32/float64.
         OSError: the file cannot be read.
     """
-    fn, where = "read_conf", os.fspath(path)
-    with open(path, "rb") as f:
+    fn = "read_conf"
+    where = _checks.check_path(fn, path, is_file=True)
+    _checks.check_float_dtype(fn, dtype)
+    largest = torch.finfo(dtype).max
+    with open(where, "rb") as f:
         lines = _text.decode_lines(f.read(), path, fn, "text .conf file")
     poses: dict[str, Tensor] = {}
     for number, raw in enumerate(lines, start=1):
@@ -81,6 +86,12 @@ def read_conf(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) ->
         except _text.TokenError as error:
             kind = "zero quaternion" if "is zero" in str(error) else "not a number"
             raise ValueError(f"{fn}: {where}: line {number}: {kind}: {error}") from None
+        too_large = [v for v in values[:3] if abs(v) > largest]
+        if too_large:
+            raise ValueError(
+                f"{fn}: {where}: line {number}: translation {too_large[0]!r} overflows {dtype} "
+                f"(largest {largest:.4g}); read with dtype=torch.float64"
+            )
         t = torch.tensor(values[:3], dtype=dtype)
         q_wxyz = torch.tensor([qw, qx, qy, qz], dtype=dtype)  # file order is scalar-last
         R = convert.quaternion_to_matrix(q_wxyz).transpose(-1, -2)  # R(q)ᵀ
@@ -108,17 +119,28 @@ def relative_to_first(
     Returns:
         The same container type: (M, 4, 4) or ``{name: (4, 4)}`` in the same order.
     """
+    fn = "relative_to_first"
     if isinstance(poses, Mapping):
         names = list(poses)
-        key = names[first] if isinstance(first, int) else first
+        if not names:
+            raise ValueError(f"{fn}: argument 'poses' must hold at least one pose, got none")
+        for name in names:
+            _checks.check_batched(fn, f"poses[{name!r}]", poses[name], (), (4, 4))
+        if isinstance(first, str):
+            key = first
+        else:
+            key = names[_checks.check_int(fn, "first", first, minimum=0, maximum=len(names) - 1)]
         if key not in poses:
-            raise ValueError(f"relative_to_first: scan {key!r} not among {names}")
+            raise ValueError(f"{fn}: argument 'first': scan {key!r} not among {names}")
         reference = se3.inverse(poses[key])
         return {n: se3.compose(reference, T) for n, T in poses.items()}
-    _checks.check_tensor("relative_to_first", "poses", poses, (4, 4), min_batch_dims=1)
-    if not isinstance(first, int):
-        raise TypeError("relative_to_first: 'first' must be an index for stacked poses")
-    return se3.compose(se3.inverse(poses[first])[None], poses)
+    _checks.check_tensor(fn, "poses", poses, (4, 4), min_batch_dims=1)
+    if isinstance(first, str):
+        raise TypeError(
+            f"{fn}: argument 'first' must be an int index for stacked poses, got {first!r}"
+        )
+    index = _checks.check_int(fn, "first", first, minimum=0, maximum=poses.shape[-3] - 1)
+    return se3.compose(se3.inverse(poses[..., index, :, :])[..., None, :, :], poses)
 
 
 def pose_errors(
@@ -157,8 +179,29 @@ def pose_errors(
 
 
 def stack(poses: Mapping[str, Tensor], names: Sequence[str]) -> Tensor:
-    """Stack ``poses[name]`` for ``names`` into shape (len(names), 4, 4)."""
+    """Stack ``poses[name]`` for ``names`` into shape (len(names), 4, 4).
+
+    Raises:
+        TypeError: ``poses`` is not a mapping of (4, 4) float tensors or ``names`` not a
+            sequence of str.
+        ValueError: no names, or a name without a pose.
+    """
+    fn = "stack"
+    if not isinstance(poses, Mapping):
+        raise TypeError(
+            f"{fn}: argument 'poses' must be a mapping name → (4, 4) tensor, "
+            f"got {_checks.describe(poses)}"
+        )
+    names = _checks.check_names(fn, names, words=False)
+    if not names:
+        raise ValueError(f"{fn}: argument 'names' must hold at least one name, got none")
     missing = [n for n in names if n not in poses]
     if missing:
-        raise ValueError(f"stack: no pose for scan(s) {missing}; known: {list(poses)}")
+        raise ValueError(f"{fn}: no pose for scan(s) {missing}; known: {list(poses)}")
+    for k, name in enumerate(names):
+        _checks.check_batched(fn, f"poses[{name!r}]", poses[name], (), (4, 4))
+        if k:
+            _checks.check_same_kind(
+                fn, **{f"poses[{names[0]!r}]": poses[names[0]], f"poses[{name!r}]": poses[name]}
+            )
     return torch.stack([poses[n] for n in names])
