@@ -757,3 +757,12 @@ def test_solve_differentiable_rejects_a_non_config_implicit():
         solve_differentiable(
             problem.pose_tangent, problem.points, problem.data, implicit={"hessian": "exact"}
         )
+
+
+def test_shape_messages_name_the_dims_and_suggest_the_batch_dim():
+    problem = _build(**_tiny())
+    with pytest.raises(ValueError) as caught:
+        solve_differentiable(problem.pose_tangent[0], problem.points, problem.data)
+    message = str(caught.value)
+    assert "(B, m, 6)" in message and "pose_tangent[None]" in message
+    assert "(B, B" not in message

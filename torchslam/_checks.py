@@ -57,6 +57,7 @@ def check_tensor(
     *,
     min_batch_dims: int = 0,
     floating: bool = True,
+    dims: Sequence[str] | None = None,
 ) -> Tensor:
     """Check that ``x`` is a tensor of shape ``(..., *trailing)`` with a supported float dtype.
 
@@ -67,6 +68,8 @@ def check_tensor(
         trailing: required trailing dimensions.
         min_batch_dims: number of leading dims that must exist in front of ``trailing``.
         floating: require float32 or float64.
+        dims: names of the ``min_batch_dims`` leading dims for the message, e.g.
+            ``("B", "m")``; default ``B`` for the first and ``d1``, ``d2``, … after it.
 
     Returns:
         ``x`` unchanged.
@@ -79,12 +82,20 @@ def check_tensor(
             "convert it with .double() (recommended) or .float()"
         )
     nt = len(trailing)
-    expected = _shape_str(
-        ["..."] * (1 if min_batch_dims == 0 else 0) + ["B"] * min_batch_dims + list(trailing)
-    )
+    if dims is None or len(dims) != min_batch_dims:
+        dims = ["B"] + [f"d{k}" for k in range(1, min_batch_dims)] if min_batch_dims else []
+    expected = _shape_str(["..."] * (1 if min_batch_dims == 0 else 0) + list(dims) + list(trailing))
     if x.dim() < nt + min_batch_dims or tuple(x.shape[x.dim() - nt :]) != tuple(trailing):
+        hint = ""
+        if (
+            min_batch_dims > 0
+            and dims[0] == "B"
+            and x.dim() == nt + min_batch_dims - 1
+            and tuple(x.shape[x.dim() - nt :]) == tuple(trailing)
+        ):
+            hint = f"; add a leading batch dim with {name}[None]"
         raise ValueError(
-            f"{fn}: argument '{name}' must have shape {expected}, got {tuple(x.shape)}"
+            f"{fn}: argument '{name}' must have shape {expected}, got {tuple(x.shape)}{hint}"
         )
     return x
 

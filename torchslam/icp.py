@@ -941,7 +941,7 @@ def chain_poses(relative: Tensor) -> Tensor:
         Poses T̂_0i, shape (M, 4, 4), the first one the identity.
     """
     fn = "chain_poses"
-    _checks.check_tensor(fn, "relative", relative, (4, 4), min_batch_dims=1)
+    _checks.check_tensor(fn, "relative", relative, (4, 4), min_batch_dims=1, dims="N")
     if relative.dim() != 3:
         raise ValueError(
             f"{fn}: argument 'relative' must have shape (M-1, 4, 4), got {tuple(relative.shape)}"

@@ -354,7 +354,7 @@ class PointMapProblem(nn.Module):
         Internally the visible entries become padded edge lists, sorted by (pose, point).
         """
         fn = "PointMapProblem.from_dense"
-        _checks.check_tensor(fn, "observations", observations, (3,), min_batch_dims=3)
+        _checks.check_tensor(fn, "observations", observations, (3,), min_batch_dims=3, dims="Bmn")
         if observations.dim() != 4:
             raise ValueError(
                 f"{fn}: argument 'observations' must have shape (B, m, n, 3), "

@@ -435,7 +435,7 @@ def _check_measurements(
 ) -> None:
     """Measurements of a built-in term: poses of shape lead + (4, 4), rigid transforms at
     the valid instances (padding instances may hold anything)."""
-    _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1)
+    _checks.check_tensor(fn, "measurements", measurements, (4, 4), min_batch_dims=1, dims="K")
     if tuple(measurements.shape[:-2]) != lead:
         raise ValueError(
             f"{fn}: argument 'measurements' must have shape {lead} + (4, 4) to match "

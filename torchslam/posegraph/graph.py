@@ -56,10 +56,14 @@ class PoseGraph:
 
     def __post_init__(self) -> None:
         fn = "PoseGraph"
-        _checks.check_tensor(fn, "poses", self.poses, (4, 4), min_batch_dims=1)
+        _checks.check_tensor(fn, "poses", self.poses, (4, 4), min_batch_dims=1, dims="N")
         n = self.poses.shape[-3]
-        _checks.check_tensor(fn, "measurements", self.measurements, (4, 4), min_batch_dims=1)
-        _checks.check_tensor(fn, "information", self.information, (6, 6), min_batch_dims=1)
+        _checks.check_tensor(
+            fn, "measurements", self.measurements, (4, 4), min_batch_dims=1, dims="E"
+        )
+        _checks.check_tensor(
+            fn, "information", self.information, (6, 6), min_batch_dims=1, dims="E"
+        )
         _checks.check_same_kind(
             fn, poses=self.poses, measurements=self.measurements, information=self.information
         )

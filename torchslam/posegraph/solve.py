@@ -181,8 +181,10 @@ class PosePriors:
 
     def __post_init__(self) -> None:
         fn = "PosePriors"
-        _checks.check_tensor(fn, "poses", self.poses, (4, 4), min_batch_dims=1)
-        _checks.check_tensor(fn, "information", self.information, (6, 6), min_batch_dims=1)
+        _checks.check_tensor(fn, "poses", self.poses, (4, 4), min_batch_dims=1, dims="K")
+        _checks.check_tensor(
+            fn, "information", self.information, (6, 6), min_batch_dims=1, dims="K"
+        )
         _checks.check_tensor(fn, "indices", self.indices, floating=False)
         _checks.check_same_kind(fn, poses=self.poses, information=self.information)
         if self.indices.dtype != torch.int64:

@@ -197,8 +197,8 @@ def solve_differentiable(
     """
     fn = "solve_differentiable"
     config = check_solve_inputs(fn, pose_tangent, points, data, config)
-    _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2)
-    _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2)
+    _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2, dims="Bm")
+    _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2, dims="Bn")
     _checks.check_same_kind(
         fn, pose_tangent=pose_tangent, points=points, observations=data.observations
     )
