@@ -766,3 +766,78 @@ def test_shape_messages_name_the_dims_and_suggest_the_batch_dim():
     message = str(caught.value)
     assert "(B, m, 6)" in message and "pose_tangent[None]" in message
     assert "(B, B" not in message
+
+
+def test_a_learnable_loss_scale_moved_below_zero_is_refused_at_solve_time():
+    scale = torch.tensor(0.1, dtype=F64, requires_grad=True)
+    problem = _build(**_tiny(), loss=ts.HuberLoss(scale))
+    with torch.no_grad():
+        scale.sub_(0.5)  # an optimizer step pushed it negative
+    with pytest.raises(ValueError, match=r"solve_differentiable: data\.loss HuberLoss.*scale"):
+        solve_differentiable(problem.pose_tangent, problem.points, problem.data)
+    with pytest.raises(ValueError, match=r"solve: data\.loss HuberLoss.*scale"):
+        ts.solve(problem)
+
+
+def test_losses_take_zero_dim_scales_and_inputs():
+    for kind in (ts.HuberLoss, ts.CauchyLoss, ts.TukeyLoss):
+        rho = kind(torch.tensor(0.3, dtype=F64))(torch.tensor(1.0, dtype=F64))
+        assert all(r.shape == () and torch.isfinite(r) for r in rho)
+
+
+@pytest.mark.parametrize("backward", ["unrolled", "truncated"])
+def test_unmoved_outputs_of_an_unrolled_solve_carry_zero_gradients(backward):
+    # No iteration runs: the outputs are constants of the data, d/d(observations) = 0, as the
+    # implicit mode returns; backward() must work (not torch's "does not require grad").
+    inputs = _tiny()
+    observations = inputs["observations"].clone().requires_grad_(True)
+    problem = _build(**{**inputs, "observations": observations})
+    result = solve_differentiable(
+        problem.pose_tangent.detach(),
+        problem.points.detach(),
+        problem.data,
+        ts.SolverConfig(max_iterations=0),
+        backward=backward,
+        on_unconverged="unroll",
+    )
+    (grad,) = torch.autograd.grad(result.pose_tangent.sum() + result.points.sum(), observations)
+    assert torch.equal(grad, torch.zeros_like(grad))
+
+
+class _PositionTerm(ts.Term):
+    def residual(self, poses):
+        return poses[..., 0, :3, 3]
+
+
+class _WrongBlocks(_PositionTerm):
+    def jacobians(self, poses):
+        r = self.residual(poses)
+        return r, r.new_zeros(*r.shape[:-1], 3, 6)  # the arity dim is missing
+
+
+class _NoneBlocks(_PositionTerm):
+    def jacobians(self, poses):
+        return None, None
+
+
+class _Unbatched(ts.Term):
+    def residual(self, poses):
+        return poses.new_zeros(1, 1, 3)  # ignores the leading dims
+
+
+@pytest.mark.parametrize(
+    ("kind", "error", "pattern"),
+    [
+        (_WrongBlocks, ValueError, r"_WrongBlocks\.jacobians: blocks must have shape"),
+        (_NoneBlocks, TypeError, r"_NoneBlocks\.jacobians: residuals must be a torch\.Tensor"),
+        (_Unbatched, ValueError, r"_Unbatched\.residual: .* must return shape \(d,\)"),
+    ],
+)
+def test_user_terms_with_wrong_output_shapes_get_named_errors(kind, error, pattern):
+    problem = _build(**_tiny(), terms=[kind(torch.tensor([[1]]))])
+    with pytest.raises(error, match=pattern):
+        ts.solve(problem)
+
+
+def test_terms_none_means_no_terms():
+    assert _build(**_tiny(), terms=None).data.terms == ()

@@ -99,6 +99,25 @@ def _check_s(fn: str, s: object) -> Tensor:
     return s
 
 
+def check_loss_values(fn: str, loss: object, name: str = "loss") -> None:
+    """At solve time: a tensor scale (a learnable one an optimizer step may have moved since
+    the loss was built) must still be finite and positive; only when value checks are active.
+    """
+    if not isinstance(loss, _ScaledKernel) or not isinstance(loss.scale, Tensor):
+        return
+    if not _checks.value_checks_active():
+        return
+    scale = loss.scale.detach()
+    bad = ~(torch.isfinite(scale) & (scale > 0))
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in bad.nonzero()[0].tolist()) if scale.dim() else ()
+        raise ValueError(
+            f"{fn}: {name} {type(loss).__name__} has a scale that is no longer positive and "
+            f"finite (at index {idx} it is {float(scale[idx])!r}); a learnable scale should be "
+            "parameterized to stay positive, e.g. HuberLoss(torch.exp(log_scale))"
+        )
+
+
 class RobustLoss(abc.ABC):
     """A robust kernel ρ applied to squared norms s ≥ 0 (Ceres' ``LossFunction``).
 
@@ -194,7 +213,7 @@ class _ScaledKernel(RobustLoss):
                 f"'s' (shape {tuple(s.shape)}), e.g. scale (B,) for s (B, E)"
             )
         scale = scale.clamp(info.tiny, info.max)
-        return scale.reshape(*scale.shape, *([1] * (s.dim() - scale.dim())))
+        return scale.reshape(tuple(scale.shape) + (1,) * (s.dim() - scale.dim()))
 
     @abc.abstractmethod
     def _evaluate_scaled(self, s: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:

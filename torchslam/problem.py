@@ -767,6 +767,8 @@ def _check_observations(
 
 
 def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) -> tuple[Term, ...]:
+    if terms is None:
+        return ()
     if isinstance(terms, Term) or not isinstance(terms, (list, tuple)):
         raise TypeError(
             f"{fn}: argument 'terms' must be a list or tuple of torchslam.Term objects, "

@@ -411,12 +411,23 @@ def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[T
     ``mode="jacrev"`` always differentiates :meth:`Term.residual` with ``torch.func.jacrev``.
     """
     constants = masked_constants(term)
+    B, K, a = poses.shape[:3]
+    d = getattr(term, "residual_dim", None)
     if mode == "analytic":
         out = term.jacobians(poses, **constants)
         if out is not None:
-            return out
+            name = f"{type(term).__name__}.jacobians"
+            if not (isinstance(out, tuple) and len(out) == 2):
+                raise TypeError(
+                    f"{name} must return None or a tuple (residuals, blocks), got "
+                    f"{_checks.describe(out)}"
+                )
+            r, J = out
+            _check_term_output(name, "residuals", r, (B, K, d), poses)
+            _check_term_output(name, "blocks", J, (B, K, r.shape[-1], a, 6), poses)
+            return r, J
     r = term.residual(poses, **constants)
-    B, K, a = poses.shape[:3]
+    _check_term_output(f"{type(term).__name__}.residual", "its return value", r, (B, K, d), poses)
     if B * K == 0:
         return r, r.new_zeros(B, K, r.shape[-1], a, 6)
 
@@ -427,7 +438,37 @@ def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[T
     J = torch.func.vmap(torch.func.jacrev(perturbed))(
         poses.new_zeros(B * K, a, 6), poses.reshape(B * K, a, 4, 4), flat_constants
     )
-    return r, J.reshape(B, K, *J.shape[1:])
+    J = J.reshape(B, K, *J.shape[1:])
+    if tuple(J.shape) != (B, K, r.shape[-1], a, 6):
+        raise ValueError(
+            f"{type(term).__name__}.residual: for one instance (poses (a, 4, 4) = "
+            f"{(a, 4, 4)}, no batch dims) it must return shape (d,) = ({r.shape[-1]},), got "
+            f"{tuple(J.shape[2:-2])}; compute it batched over all leading dims (use '...')"
+        )
+    return r, J
+
+
+def _check_term_output(
+    fn: str, what: str, value: object, expected: tuple[int | None, ...], poses: Tensor
+) -> None:
+    """A user term's residuals (B, K, d) or blocks (B, K, d, a, 6) at the solver's call: a
+    tensor of the poses' dtype and device and exactly that shape (``None``: any size)."""
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{fn}: {what} must be a torch.Tensor, got {_checks.describe(value)}")
+    shape = tuple(value.shape)
+    if len(shape) != len(expected) or any(
+        e is not None and e != g for e, g in zip(expected, shape, strict=True)
+    ):
+        want = "(" + ", ".join("d" if e is None else str(e) for e in expected) + ")"
+        raise ValueError(
+            f"{fn}: {what} must have shape {want} for poses {tuple(poses.shape)} "
+            f"(B, K, a, 4, 4), got {shape}; compute it batched over all leading dims"
+        )
+    if value.dtype != poses.dtype or value.device != poses.device:
+        raise TypeError(
+            f"{fn}: {what} must be {poses.dtype} on {poses.device} like the poses, got "
+            f"{value.dtype} on {value.device}"
+        )
 
 
 def _check_measurements(

@@ -255,7 +255,44 @@ def solve_differentiable(
             state, costs, lambdas = _run_truncated(
                 pose_tangent, points, data, config, truncate_steps
             )
-    return _result(state, costs, lambdas, start)
+    return _connected(_result(state, costs, lambdas, start), pose_tangent, points, data)
+
+
+def _connected(result: SolveResult, *inputs: object) -> SolveResult:
+    """Outputs that did not move (no iteration ran, every variable fixed) are constants of
+    the inputs, whose gradient is zero: attach them to the graph with an exact zero (the sum
+    of an empty slice of each input that requires grad), so that ``backward()`` gives zeros
+    as the implicit mode does, not torch's "does not require grad" error. Empty slices never
+    read a value: NaN padding stays inert."""
+    if not torch.is_grad_enabled():
+        return result
+    leaves = [t for t in _grad_inputs(*inputs) if t.requires_grad]
+    if not leaves:
+        return result
+    changes = {}
+    for name in ("pose_tangent", "points", "final_cost"):
+        value = getattr(result, name)
+        if not value.requires_grad:
+            zero = sum(t.reshape(-1)[:0].sum() for t in leaves)
+            changes[name] = value + zero.to(value.dtype)
+    return dataclasses.replace(result, **changes) if changes else result
+
+
+def _grad_inputs(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> list[Tensor]:
+    """The floating tensors a differentiable solve carries gradients to."""
+    tensors = [pose_tangent, points]
+    for field in dataclasses.fields(data):
+        value = getattr(data, field.name)
+        if isinstance(value, Tensor) and value.is_floating_point():
+            tensors.append(value)
+    tensors.extend(losses.tensor_attributes(data.loss).values())
+    for term in data.terms:
+        tensors.extend(v for v in term.constants.values() if v.is_floating_point())
+        for value in (term.weight, term.information):
+            if isinstance(value, Tensor):
+                tensors.append(value)
+        tensors.extend(losses.tensor_attributes(term.loss).values())
+    return tensors
 
 
 # ------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchslam import _checks
+from torchslam import _checks, losses
 from torchslam.lie import se3
 from torchslam.problem import PointMapData, PointMapProblem, check_data_values
 from torchslam.solver import linear
@@ -93,6 +93,9 @@ def check_solve_inputs(
         _checks.check_finite(fn, "pose_tangent", pose_tangent)
         _checks.check_finite(fn, "points", points)
         check_data_values(fn, data)
+        losses.check_loss_values(fn, data.loss, "data.loss")
+        for k, term in enumerate(data.terms):
+            losses.check_loss_values(fn, term.loss, f"data.terms[{k}].loss")
     return config
 
 
