@@ -85,7 +85,7 @@ def test_voxel_downsample_small_cases():
     got = icp.voxel_downsample(points, 0.1)
     assert torch.allclose(got, torch.tensor([[0.025, 0, 0], [1.0, 1.0, 1.0]], dtype=F64))
     assert icp.voxel_downsample(points[:0], 0.1).shape == (0, 3)
-    with pytest.raises(ValueError, match="voxel_downsample: argument 'voxel_size' must be > 0"):
+    with pytest.raises(ValueError, match=r"voxel_downsample: argument 'voxel_size' must be .*> 0"):
         icp.voxel_downsample(points, 0.0)
     with pytest.raises(ValueError, match="voxel_downsample: argument 'points'"):
         icp.voxel_downsample(points[None], 0.1)
@@ -294,7 +294,7 @@ def test_input_validation():
         ICPConfig(trim_fraction=0.0)
     with pytest.raises(ValueError, match="unknown method"):
         ICPConfig(method="point_to_line")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="'keep' must be >= 1"):
+    with pytest.raises(ValueError, match=r"'keep' must be .*>= 1"):
         icp.Stage(0.1, keep=0)
 
 

@@ -447,62 +447,6 @@ def as_points(
     return tensor
 
 
-def int_argument(
-    fn: str, name: str, value: object, *, minimum: int | None = None, maximum: int | None = None
-) -> int:
-    """An integer argument (ints, numpy integers; not bools or floats) within [min, max]."""
-    try:
-        if isinstance(value, bool):
-            raise TypeError
-        number = operator.index(value)  # type: ignore[arg-type]
-    except TypeError:
-        raise TypeError(f"{fn}: argument '{name}' must be an int, got {describe(value)}") from None
-    if (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
-        if maximum is None:
-            wanted = f">= {minimum}"
-        elif minimum is None:
-            wanted = f"<= {maximum}"
-        else:
-            wanted = f"in [{minimum}, {maximum}]"
-        raise ValueError(f"{fn}: argument '{name}' must be {wanted} (an int), got {number}")
-    return number
-
-
-def real_argument(
-    fn: str,
-    name: str,
-    value: object,
-    *,
-    minimum: float | None = None,
-    strict: bool = False,
-    maximum: float | None = None,
-    allow_inf: bool = False,
-) -> float:
-    """A real argument (ints, floats, numpy scalars; not bools, strings or tensors): not NaN,
-    finite unless ``allow_inf``, > ``minimum`` (``strict``) or ≥ it, and ≤ ``maximum``."""
-    import math
-    import numbers
-
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{fn}: argument '{name}' must be a real number, got {describe(value)}")
-    number = float(value)
-    parts = []
-    if minimum is not None:
-        parts.append(f"{'>' if strict else '>='} {minimum:g}")
-    if maximum is not None:
-        parts.append(f"<= {maximum:g}")
-    kind = "a finite number" if not allow_inf else "a number, inf allowed"
-    wanted = f"{' and '.join(parts)} ({kind})" if parts else kind
-    ok = not math.isnan(number) and (allow_inf or math.isfinite(number))
-    if ok and minimum is not None:
-        ok = number > minimum if strict else number >= minimum
-    if ok and maximum is not None:
-        ok = number <= maximum
-    if not ok:
-        raise ValueError(f"{fn}: argument '{name}' must be {wanted}, got {describe(value)}")
-    return number
-
-
 # --------------------------------------------------------------------------------------------
 # Plain-Python arguments (fix-reg branch): numbers, seeds, dtypes, devices, paths and names, for
 # the register / io / data / initialization boundary and config dataclasses.
@@ -557,11 +501,13 @@ def check_real(
     low_open: bool = False,
     high_open: bool = False,
     kind: str = "argument",
+    allow_inf: bool = False,
 ) -> float:
     """A finite real number (int, float, numpy scalar; not bool) in a range, as a float.
 
     The range is [low, high], with ``low_open`` / ``high_open`` excluding an end; None leaves
-    that side unbounded. TypeError for a non-number, ValueError for NaN, Inf or out of range.
+    that side unbounded; ``allow_inf`` also accepts ±inf within the range. TypeError for a
+    non-number, ValueError for NaN, Inf (unless allowed) or out of range.
     """
     parts = []
     if low is not None and high is not None:
@@ -570,11 +516,15 @@ def check_real(
         parts.append(f"{'>' if low_open else '>='} {low:g}")
     elif high is not None:
         parts.append(f"{'<' if high_open else '<='} {high:g}")
-    expected = "a finite number" + (" " + parts[0] if parts else "")
+    number = "a number (inf allowed)" if allow_inf else "a finite number"
+    expected = number + (" " + parts[0] if parts else "")
     if isinstance(value, bool) or not isinstance(value, _numbers.Real):
         raise TypeError(f"{fn}: {kind} '{name}' must be a real number, got {_got(value)}")
-    result = float(value)
-    ok = _math.isfinite(result)
+    try:
+        result = float(value)
+    except OverflowError:  # an int beyond the float range
+        result = _math.inf if value > 0 else -_math.inf
+    ok = not _math.isnan(result) and (allow_inf or _math.isfinite(result))
     if ok and low is not None:
         ok = result > low if low_open else result >= low
     if ok and high is not None:

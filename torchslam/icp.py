@@ -73,7 +73,7 @@ def voxel_downsample(points: Tensor, voxel_size: float) -> Tensor:
     """
     fn = "voxel_downsample"
     points = _checks.as_points(fn, "points", points)
-    voxel = _checks.real_argument(fn, "voxel_size", voxel_size, minimum=0.0, strict=True)
+    voxel = _checks.check_real(fn, "voxel_size", voxel_size, low=0.0, low_open=True)
     return _downsample(fn, points, voxel)
 
 
@@ -150,8 +150,8 @@ def nearest_neighbors(
     reference = _checks.as_points(fn, "reference", reference, like=like, min_points=1, finite=False)
     _checks.check_same_kind(fn, query=query, reference=reference)
     if max_distance is not None:
-        max_distance = _checks.real_argument(
-            fn, "max_distance", max_distance, minimum=0.0, strict=True, allow_inf=True
+        max_distance = _checks.check_real(
+            fn, "max_distance", max_distance, low=0.0, low_open=True, allow_inf=True
         )
     tree = _tree(fn, "reference", reference)
     return _query(tree, query, max_distance, fn=fn, name="query")
@@ -199,7 +199,7 @@ def estimate_normals(
     """
     fn = "estimate_normals"
     points = _checks.as_points(fn, "points", points, min_points=3, finite=False)
-    k = _checks.int_argument(fn, "neighbors", neighbors, minimum=3, maximum=points.shape[0])
+    k = _checks.check_int(fn, "neighbors", neighbors, minimum=3, maximum=points.shape[0])
     if viewpoint is not None:
         viewpoint = _checks.as_points(fn, "viewpoint", viewpoint, like=points, cloud=False)
         if viewpoint.shape != (3,):
@@ -263,22 +263,22 @@ class ICPConfig:
                 f"{fn}: unknown method {self.method!r}: argument 'method' must be "
                 "'point_to_point' or 'point_to_plane'"
             )
-        _checks.int_argument(fn, "max_iterations", self.max_iterations, minimum=0)
-        _checks.real_argument(fn, "relative_tolerance", self.relative_tolerance, minimum=0.0)
+        _checks.check_int(fn, "max_iterations", self.max_iterations, minimum=0)
+        _checks.check_real(fn, "relative_tolerance", self.relative_tolerance, low=0.0)
         if self.max_distance is not None:
-            _checks.real_argument(fn, "max_distance", self.max_distance, minimum=0.0, strict=True)
-        _checks.real_argument(fn, "min_distance", self.min_distance, minimum=0.0)
+            _checks.check_real(fn, "max_distance", self.max_distance, low=0.0, low_open=True)
+        _checks.check_real(fn, "min_distance", self.min_distance, low=0.0)
         if self.max_distance is not None and self.min_distance > self.max_distance:
             raise ValueError(
                 f"{fn}: argument 'min_distance' (the floor of the gate) must be <= "
                 f"'max_distance' = {self.max_distance:g}, got {self.min_distance:g}"
             )
         if self.gate_scale is not None:
-            _checks.real_argument(fn, "gate_scale", self.gate_scale, minimum=0.0, strict=True)
-        _checks.real_argument(
-            fn, "trim_fraction", self.trim_fraction, minimum=0.0, strict=True, maximum=1.0
+            _checks.check_real(fn, "gate_scale", self.gate_scale, low=0.0, low_open=True)
+        _checks.check_real(
+            fn, "trim_fraction", self.trim_fraction, low=0.0, low_open=True, high=1.0
         )
-        _checks.int_argument(fn, "min_correspondences", self.min_correspondences, minimum=3)
+        _checks.check_int(fn, "min_correspondences", self.min_correspondences, minimum=3)
 
 
 class ICPStatus(enum.IntEnum):
@@ -677,7 +677,7 @@ def rotations_about_axis(
         Rotation matrices, shape (count, 3, 3); the first is the identity.
     """
     fn = "rotations_about_axis"
-    count = _checks.int_argument(fn, "count", count, minimum=1)
+    count = _checks.check_int(fn, "count", count, minimum=1)
     if axis is None:
         _checks.check_dtype_device(fn, dtype, None)
         axis = torch.tensor([0.0, 1.0, 0.0], dtype=dtype)
@@ -711,7 +711,7 @@ def rotations_uniform(
         Rotation matrices, shape (count, 3, 3).
     """
     fn = "rotations_uniform"
-    count = _checks.int_argument(fn, "count", count, minimum=1)
+    count = _checks.check_int(fn, "count", count, minimum=1)
     _checks.check_dtype_device(fn, dtype, device)
     phi = math.sqrt(2.0)
     psi = 1.533751168755204288118041
@@ -789,8 +789,8 @@ def icp_multistart(
         fn, source, target, initial, config, target_normals
     )
     if fitness_distance is not None:
-        distance = _checks.real_argument(
-            fn, "fitness_distance", fitness_distance, minimum=0.0, strict=True
+        distance = _checks.check_real(
+            fn, "fitness_distance", fitness_distance, low=0.0, low_open=True
         )
     elif config.min_distance > 0:
         distance = config.min_distance
@@ -837,19 +837,19 @@ class Stage:
 
     def __post_init__(self) -> None:
         fn = "Stage"
-        _checks.real_argument(fn, "voxel_size", self.voxel_size, minimum=0.0)
+        _checks.check_real(fn, "voxel_size", self.voxel_size, low=0.0)
         if not isinstance(self.config, ICPConfig):
             raise TypeError(
                 f"{fn}: argument 'config' must be an ICPConfig, got {_checks.describe(self.config)}"
             )
-        _checks.int_argument(fn, "keep", self.keep, minimum=1)
+        _checks.check_int(fn, "keep", self.keep, minimum=1)
         if self.fitness_distance is not None:
-            _checks.real_argument(
-                fn, "fitness_distance", self.fitness_distance, minimum=0.0, strict=True
+            _checks.check_real(
+                fn, "fitness_distance", self.fitness_distance, low=0.0, low_open=True
             )
         elif self.voxel_size == 0:
             raise ValueError(f"{fn}: give 'fitness_distance' when 'voxel_size' is 0")
-        _checks.int_argument(fn, "normal_neighbors", self.normal_neighbors, minimum=3)
+        _checks.check_int(fn, "normal_neighbors", self.normal_neighbors, minimum=3)
 
 
 def register_coarse_to_fine(

@@ -123,7 +123,7 @@ def mutual_nearest_neighbors(first: Tensor, second: Tensor, radius: float) -> Te
     first = _checks.as_points(fn, "first", first, like=like, finite=False)
     second = _checks.as_points(fn, "second", second, like=like, finite=False)
     _checks.check_same_kind(fn, first=first, second=second)
-    bound = _checks.real_argument(fn, "radius", radius, minimum=0.0, strict=True, allow_inf=True)
+    bound = _checks.check_real(fn, "radius", radius, low=0.0, low_open=True, allow_inf=True)
     a_to_b = _mutual(_numpy(fn, "first", first), _numpy(fn, "second", second), None, None, bound)
     return torch.from_numpy(a_to_b).to(torch.int64)
 
@@ -212,7 +212,7 @@ def _pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
                 f"{fn}: argument 'pairs' must hold (i, k) pairs, got {pair!r} at position "
                 f"{position}"
             )
-        i, k = (_checks.int_argument(fn, f"pairs[{position}]", x) for x in items)
+        i, k = (_checks.check_int(fn, f"pairs[{position}]", x) for x in items)
         if not (0 <= i < m and 0 <= k < m and i != k):
             raise ValueError(
                 f"{fn}: argument 'pairs' holds the invalid scan pair ({i}, {k}) at position "
@@ -275,8 +275,8 @@ def build_tracks(
         )
     _checks.check_same_kind(fn, **{"clouds[0]": clouds[0], "poses": poses})
     _checks.check_pose_matrix(fn, "poses", poses)
-    radius = _checks.real_argument(fn, "radius", radius, minimum=0.0, strict=True, allow_inf=True)
-    min_views = _checks.int_argument(fn, "min_views", min_views, minimum=2)
+    radius = _checks.check_real(fn, "radius", radius, low=0.0, low_open=True, allow_inf=True)
+    min_views = _checks.check_int(fn, "min_views", min_views, minimum=2)
     if not isinstance(conflicts, str) or conflicts not in ("greedy", "drop"):
         raise ValueError(
             f"{fn}: argument 'conflicts' must be 'greedy' or 'drop', got "
