@@ -51,11 +51,19 @@ def _assert_same_as_solo(batched, solo, b: int) -> None:
     assert batched.status[b] == solo.status[0]
     assert int(batched.iterations[b]) == int(solo.iterations[0])
     K = solo.cost_history.shape[1]
+    # Costs agree to 1e-12 relative; a noise-free problem ends at its round-off floor (cost
+    # ~1e-24 for an initial O(1)), where batched and solo kernels (other GEMM shapes, CPUs)
+    # round differently: there only |Δcost| ≤ 1e-12·initial cost is meaningful.
+    initial = float(solo.cost_history[0, 0])
     torch.testing.assert_close(
-        batched.cost_history[b, :K], solo.cost_history[0], rtol=1e-12, atol=0
+        batched.cost_history[b, :K], solo.cost_history[0], rtol=1e-12, atol=1e-12 * initial
     )
+    # λ follows the gain ratios, which are rounding noise once the cost it starts from is at
+    # the floor: compare the λ of steps taken from costs above 1e-16 × the initial cost.
+    above = solo.cost_history[0, : K - 1] > 1e-16 * initial
+    steps = torch.cat((torch.tensor([True]), above))
     torch.testing.assert_close(
-        batched.lambda_history[b, :K], solo.lambda_history[0], rtol=1e-12, atol=0
+        batched.lambda_history[b, :K][steps], solo.lambda_history[0][steps], rtol=1e-12, atol=0
     )
     torch.testing.assert_close(batched.pose_tangent[b], solo.pose_tangent[0], rtol=0, atol=1e-12)
     torch.testing.assert_close(batched.points[b], solo.points[0], rtol=0, atol=1e-12)
@@ -203,12 +211,10 @@ def test_non_finite_data_in_one_problem_is_reported_and_isolated():
             valid=scene.valid,
         )
     for algorithm in ("levenberg_marquardt", "gauss_newton", "gradient_descent"):
-        result = torchslam.solve_tensors(
-            problem.pose_tangent, problem.points, problem.data, SolverConfig(algorithm=algorithm)
-        )
+        config = SolverConfig(algorithm=algorithm)
+        result = torchslam.solve_tensors(problem.pose_tangent, problem.points, problem.data, config)
         assert result.status[1] == Status.NON_FINITE
         assert "non-finite" in result.reason[1]
         assert int(result.iterations[1]) == 0
         assert torch.equal(result.pose_tangent[1], problem.pose_tangent[1].detach())
-        solo = _solo(problem, 0, SolverConfig(algorithm=algorithm))
-        _assert_same_as_solo(result, solo, 0)
+        _assert_same_as_solo(result, _solo(problem, 0, config), 0)
