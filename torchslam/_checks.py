@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import operator
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -626,3 +626,30 @@ def check_names(
             + ", ".join(map(repr, repeated))
         )
     return out
+
+
+def check_index_pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
+    """Scan pairs (any iterable of 2-item iterables) as a list of (i, k) ints with
+    0 ≤ i, k < m and i ≠ k: TypeError / ValueError naming ``fn``."""
+    if isinstance(pairs, (str, bytes)) or not isinstance(pairs, Iterable):
+        raise TypeError(
+            f"{fn}: argument 'pairs' must be a sequence of (i, k) scan pairs, got {describe(pairs)}"
+        )
+    checked = []
+    for position, pair in enumerate(pairs):
+        items = (
+            [] if isinstance(pair, (str, bytes)) or not isinstance(pair, Iterable) else list(pair)
+        )
+        if len(items) != 2:
+            raise ValueError(
+                f"{fn}: argument 'pairs' must hold (i, k) pairs, got {pair!r} at position "
+                f"{position}"
+            )
+        i, k = (check_int(fn, f"pairs[{position}]", x) for x in items)
+        if not (0 <= i < m and 0 <= k < m and i != k):
+            raise ValueError(
+                f"{fn}: argument 'pairs' holds the invalid scan pair ({i}, {k}) at position "
+                f"{position}: need 0 ≤ i, k < {m} (the number of clouds) and i ≠ k"
+            )
+        checked.append((i, k))
+    return checked

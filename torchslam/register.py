@@ -454,27 +454,6 @@ def _check_config(fn: str, config: object) -> RegisterConfig:
     return config
 
 
-def _check_pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
-    """Scan pairs (i, k), 0 ≤ i, k < m, i ≠ k, as a list of int tuples."""
-    if isinstance(pairs, (str, Tensor)) or not isinstance(pairs, Sequence):
-        raise TypeError(
-            f"{fn}: argument 'pairs' must be a list of (i, k) index pairs, "
-            f"got {_checks.describe(pairs)}"
-        )
-    out = []
-    for n, pair in enumerate(pairs):
-        if isinstance(pair, (str, Tensor)) or not isinstance(pair, Sequence) or len(pair) != 2:
-            raise ValueError(
-                f"{fn}: argument 'pairs' must hold (i, k) index pairs, got "
-                f"{_checks.describe(pair)} at index {n}"
-            )
-        i, k = (_checks.check_int(fn, f"pairs[{n}]", v, minimum=0, maximum=m - 1) for v in pair)
-        if i == k:
-            raise ValueError(f"{fn}: argument 'pairs' pairs scan {i} with itself at index {n}")
-        out.append((i, k))
-    return out
-
-
 # ----------------------------------------------------------------------------- pairwise chain
 
 
@@ -757,7 +736,7 @@ def refine(
     if progress is not None and not callable(progress):
         raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if pairs is not None:
-        pairs = _check_pairs(fn, pairs, len(clouds))
+        pairs = _checks.check_index_pairs(fn, pairs, len(clouds))
     poses = relative_to_first(poses.detach().clone().to(clouds[0].dtype), 0)
     if pairs is None:
         pairs, _ = overlapping_pairs(clouds, poses, config.voxel_size, config.min_overlap)
@@ -886,7 +865,7 @@ def _plane_distances(
     m = len(clouds)
     _check_poses(fn, poses, m)
     poses = poses.to(clouds[0].dtype)
-    pairs = _check_pairs(fn, pairs, m)
+    pairs = _checks.check_index_pairs(fn, pairs, m)
     distance = _checks.check_real(fn, "distance", distance, low=0, low_open=True)
     normal_neighbors = _checks.check_int(fn, "normal_neighbors", normal_neighbors, minimum=3)
     normals = [icp.estimate_normals(c, min(normal_neighbors, len(c))) for c in clouds]

@@ -25,7 +25,7 @@ r_ij = X_ij − T_0i⁻¹ X_0j, i.e. X_ij − T_i0 X_0j of seed eq. (1.1) with T
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -195,33 +195,6 @@ def _greedy_components(
     return label, refused
 
 
-def _pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
-    """Scan pairs as a list of (i, k) ints with 0 ≤ i, k < m and i ≠ k."""
-    if isinstance(pairs, (str, bytes)) or not isinstance(pairs, Iterable):
-        raise TypeError(
-            f"{fn}: argument 'pairs' must be a sequence of (i, k) scan pairs, got "
-            f"{_checks.describe(pairs)}"
-        )
-    checked = []
-    for position, pair in enumerate(pairs):
-        items = (
-            [] if isinstance(pair, (str, bytes)) or not isinstance(pair, Iterable) else list(pair)
-        )
-        if len(items) != 2:
-            raise ValueError(
-                f"{fn}: argument 'pairs' must hold (i, k) pairs, got {pair!r} at position "
-                f"{position}"
-            )
-        i, k = (_checks.check_int(fn, f"pairs[{position}]", x) for x in items)
-        if not (0 <= i < m and 0 <= k < m and i != k):
-            raise ValueError(
-                f"{fn}: argument 'pairs' holds the invalid scan pair ({i}, {k}) at position "
-                f"{position}: need 0 ≤ i, k < {m} (the number of clouds) and i ≠ k"
-            )
-        checked.append((i, k))
-    return checked
-
-
 def build_tracks(
     clouds: Sequence[Tensor],
     poses: Tensor,
@@ -282,7 +255,11 @@ def build_tracks(
             f"{fn}: argument 'conflicts' must be 'greedy' or 'drop', got "
             f"{_checks.describe(conflicts)}"
         )
-    pairs = list(itertools.combinations(range(m), 2)) if pairs is None else _pairs(fn, pairs, m)
+    pairs = (
+        list(itertools.combinations(range(m), 2))
+        if pairs is None
+        else _checks.check_index_pairs(fn, pairs, m)
+    )
 
     dtype, device = clouds[0].dtype, clouds[0].device
     world = [_numpy(fn, "poses", se3.act(poses[i], clouds[i])) for i in range(m)]
