@@ -57,15 +57,42 @@ from torchslam.terms import (
 
 __all__ = [
     "BlockLinearization",
+    "CouplingEdges",
     "StructuredLinearization",
     "TermLinearization",
     "cost_at",
+    "coupling_edges",
     "linearize",
     "linearize_terms",
     "monomials",
     "term_pair_keys",
     "whitening_factors",
 ]
+
+
+@dataclass(frozen=True)
+class CouplingEdges:
+    """Every pose-point coupling block W_e of the objective (fixed for a solve).
+
+    The order is the order of :attr:`BlockLinearization.coupling`: the point observations of
+    ``data`` first. The Schur complement eliminates the points through these edges only.
+    """
+
+    # Pose and point of each edge, long (B, E').
+    pose_index: Tensor
+    point_index: Tensor
+    # The edge couples a free pose with a free point of a valid entry, bool (B, E').
+    active: Tensor
+
+
+def coupling_edges(data: PointMapData) -> CouplingEdges:
+    """The :class:`CouplingEdges` of ``data`` (its point observations)."""
+    active = (
+        data.valid
+        & ~torch.gather(data.fixed_poses, 1, data.pose_index)
+        & ~torch.gather(data.fixed_points, 1, data.point_index)
+    )
+    return CouplingEdges(data.pose_index, data.point_index, active)
 
 
 @dataclass
