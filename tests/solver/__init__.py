@@ -241,3 +241,31 @@ def solution_distance(a: torchslam.PointMapProblem, c: torchslam.PointMapProblem
         delta = se3.log(se3.inverse(a.poses()[b]) @ c.poses()[b])
         dX = c.points[b] - a.points[b]
     return float(torch.cat((delta.reshape(-1), dX.reshape(-1))).norm())
+
+
+def factorize(
+    lin,
+    data,
+    lam: torch.Tensor,
+    damping: str = "marquardt",
+    linear_solver: str = "schur",
+    reduced_solver: str = "dense",
+    chunk_size: int = 1 << 20,
+):
+    """The solver's plan for ``data`` with these options, factorizing ``lin`` at λ = ``lam``."""
+    from torchslam.solver.plan import LinearPlan
+
+    config = torchslam.SolverConfig(
+        damping=damping,
+        linear_solver=linear_solver,
+        reduced_solver=reduced_solver,
+        schur_chunk_size=chunk_size,
+    )
+    return LinearPlan.build(data, config).factorize(lin, lam)
+
+
+def solve_step(lin, data, lam: torch.Tensor, damping: str = "marquardt", *args, **kwargs):
+    """(δp, δl, ok): the damped step of ``lin`` by :func:`factorize` (same options)."""
+    f = factorize(lin, data, lam, damping, *args, **kwargs)
+    dp, dl = f.solve(lin.pose_gradient, lin.point_gradient)
+    return dp, dl, f.ok

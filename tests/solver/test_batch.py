@@ -98,8 +98,8 @@ def test_a_converged_problem_stops_changing_while_the_others_go_on():
     assert torch.all(batched.cost_history[early, k:] == batched.cost_history[early, k])
     assert torch.all(batched.lambda_history[early, k:] == batched.lambda_history[early, k])
     for info in seen[k:]:
-        assert not bool(info["active"][early])
-        assert not bool(info["accepted"][early])
+        assert not bool(info.active[early])
+        assert not bool(info.accepted[early])
     assert bool(seen[k - 1]["active"][late])
     # Its estimate is the one it had when it stopped: the same as a batched solve cut off
     # after k iterations, and as its solo solve.

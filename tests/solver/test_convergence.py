@@ -102,10 +102,10 @@ def test_lm_accepted_cost_never_increases_per_problem():
         assert torch.all(result.final_cost < 0.5 * result.initial_cost)
         # The callback saw the same costs; a step a running problem rejected left its cost
         # exactly unchanged.
-        costs = torch.stack([info["cost"] for info in seen], dim=1)
+        costs = torch.stack([info.cost for info in seen], dim=1)
         torch.testing.assert_close(costs, history[:, 1:], rtol=0, atol=0)
         for k, info in enumerate(seen):
-            rejected = info["active"] & ~info["accepted"]  # still running, step not taken
+            rejected = info.active & ~info.accepted  # still running, step not taken
             assert torch.all(history[rejected, k + 1] == history[rejected, k])
 
 
@@ -141,7 +141,7 @@ def test_lm_rejects_an_overshooting_step_and_raises_lambda_per_problem(damping):
     config = SolverConfig(damping=damping, initial_lambda=1e-12)
     result = torchslam.solve(problem, config, callback=seen.append)
     first = seen[0]
-    assert first["accepted"].tolist() == [False, False, True]
+    assert first.accepted.tolist() == [False, False, True]
     lam, history = result.lambda_history, result.cost_history
     # Rejected: cost kept exactly, λ raised; accepted: cost lowered, λ lowered.
     assert history[0, 1] == history[0, 0] and history[1, 1] == history[1, 0]

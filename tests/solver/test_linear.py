@@ -9,7 +9,7 @@ import torch
 
 import torchslam
 from torchslam import SolverConfig
-from torchslam.solver import linear
+from torchslam.solver import plan as plan_module
 from torchslam.solver.linearize import (
     BlockLinearization,
     StructuredLinearization,
@@ -24,6 +24,7 @@ from . import (
     problem_from,
     solution_distance,
     solution_distance_bound,
+    solve_step,
 )
 
 LAMBDAS = (0.0, 1e-3, 10.0)
@@ -81,14 +82,14 @@ def test_schur_and_dense_paths_give_the_same_step(weighting, loss, fixed_points,
     torch.testing.assert_close(structured.cost, block.cost, rtol=1e-13, atol=0)
     for value in LAMBDAS:
         lam = _lam(value, problem.batch_size)
-        dp_d, dl_d, ok_d = linear.solve_step(block, data, None, lam, damping, "dense")
+        dp_d, dl_d, ok_d = solve_step(block, data, lam, damping, "dense")
         # Undamped Tukey systems are singular here (a point whose views are all beyond the
         # scale has ρ' = 0 everywhere); every other system is positive definite.
         assert bool(ok_d.all()) or (value == 0 and isinstance(loss, torchslam.TukeyLoss))
         if bool(ok_d.any()):
             assert float(dp_d[ok_d].abs().max()) > 1e-3  # a real step, not a trivial one
         for lin in (block, structured):
-            dp, dl, ok = linear.solve_step(lin, data, None, lam, damping, "schur")
+            dp, dl, ok = solve_step(lin, data, lam, damping, "schur")
             assert torch.equal(ok, ok_d)
             torch.testing.assert_close(dp[ok], dp_d[ok], rtol=0, atol=STEP_TOL)
             torch.testing.assert_close(dl[ok], dl_d[ok], rtol=0, atol=STEP_TOL)
@@ -126,7 +127,7 @@ def test_step_solves_the_damped_normal_equations_of_the_dense_jacobian(weighting
             else:
                 D = torch.diag(H.diagonal().clamp(1e-6, 1e32))
             for solver in ("schur", "dense"):
-                dp, dl, ok = linear.solve_step(
+                dp, dl, ok = solve_step(
                     lin
                     if solver == "schur"
                     else linearize(
@@ -137,7 +138,6 @@ def test_step_solves_the_damped_normal_equations_of_the_dense_jacobian(weighting
                         structured=False,
                     ),
                     data,
-                    None,
                     lam,
                     damping,
                     solver,
@@ -158,10 +158,12 @@ def test_block_schur_chunking_does_not_change_the_step():
     lin = linearize(
         problem.pose_tangent.detach(), problem.points.detach(), data, whitening_factors(data)
     )
-    structure = linear.SchurStructure.build(data)
+    structure = plan_module.PairStructure.build(
+        plan_module.coupling_edges(data), data.num_poses, data.num_points
+    )
     lam = _lam(1e-3, problem.batch_size)
-    whole = linear.solve_schur(lin, data, structure, lam, "marquardt", chunk_size=1 << 20)
-    chunked = linear.solve_schur(lin, data, structure, lam, "marquardt", chunk_size=7)
+    whole = solve_step(lin, data, lam, "marquardt", chunk_size=1 << 20)
+    chunked = solve_step(lin, data, lam, "marquardt", chunk_size=7)
     assert structure.num_pairs > 7
     for a, b in zip(whole, chunked, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-13)
@@ -326,9 +328,9 @@ def test_structured_schur_chunked_over_points_equals_one_chunk(monkeypatch, entr
     data = problem.data
     lin = linearize(problem.pose_tangent.detach(), problem.points.detach(), data, None)
     lam = torch.full((3,), 1e-3, dtype=torch.float64)
-    reference = linear.solve_step(lin, data, None, lam, "marquardt")
-    monkeypatch.setattr(linear, "STRUCTURED_CHUNK_ENTRIES", entries)
-    chunked = linear.solve_step(lin, data, None, lam, "marquardt")
+    reference = solve_step(lin, data, lam, "marquardt")
+    monkeypatch.setattr(plan_module, "STRUCTURED_CHUNK_ENTRIES", entries)
+    chunked = solve_step(lin, data, lam, "marquardt")
     assert chunked[2].all()
     torch.testing.assert_close(chunked[0], reference[0], rtol=0, atol=1e-12)
     torch.testing.assert_close(chunked[1], reference[1], rtol=0, atol=1e-12)

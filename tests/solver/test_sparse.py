@@ -19,7 +19,8 @@ from torchslam.data.loop import make_loop_scene
 from torchslam.data.synthetic import make_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
-from torchslam.solver import linear, sparse
+from torchslam.solver import plan as plan_module
+from torchslam.solver import sparse
 from torchslam.solver.differentiable import ImplicitConfig
 from torchslam.solver.linearize import (
     BlockLinearization,
@@ -29,6 +30,8 @@ from torchslam.solver.linearize import (
 )
 from torchslam.solver.sparse import BlockPattern, fill_reducing_order
 from torchslam.terms import PosePriorTerm, RelativePoseTerm
+
+from . import factorize, solve_step
 
 F64 = torch.float64
 ORDERINGS = ("mmd", "colamd", "natural")
@@ -363,17 +366,17 @@ def _linearized(linearization: str, variant: str):
 def test_sparse_and_dense_reduced_systems_give_the_same_step(linearization, variant, damping):
     problem, data, lin = _linearized(linearization, variant)
     B, m = problem.batch_size, problem.num_poses
-    sparse = linear.SparseSchur.build(data)
-    same_pose_pairs = int((sparse.structure.same_pose & ~sparse.structure.self_pair).sum())
+    plan = plan_module.LinearPlan.build(data, SolverConfig(reduced_solver="sparse"))
+    same_pose_pairs = int((plan.pairs.same_pose & ~plan.pairs.self_pair).sum())
     assert (same_pose_pairs > 0) == (variant == "duplicates")
     # The pattern is sparse and differs between the two problems.
-    sizes = [layout.stop - layout.start for layout in sparse.pattern.layouts]
+    sizes = [layout.stop - layout.start for layout in plan.reduced.pattern.layouts]
     assert sizes[0] != sizes[1]
     assert max(sizes) < m * (m + 1) // 4
     for value in (0.0, 1e-3, 10.0):
         lam = torch.full((B,), value, dtype=F64)
-        dp_d, dl_d, ok_d = linear.solve_step(lin, data, None, lam, damping)
-        dp_s, dl_s, ok_s = linear.solve_step(lin, data, None, lam, damping, sparse=sparse)
+        dp_d, dl_d, ok_d = solve_step(lin, data, lam, damping)
+        dp_s, dl_s, ok_s = solve_step(lin, data, lam, damping, reduced_solver="sparse")
         assert ok_d.tolist() == ok_s.tolist() == [True] * B
         scale = max(float(dp_d.abs().max()), float(dl_d.abs().max()))
         assert scale > 1e-3  # a real step
@@ -384,7 +387,7 @@ def test_sparse_and_dense_reduced_systems_give_the_same_step(linearization, vari
         assert torch.all(dl_s[data.fixed_points] == 0)
         if isinstance(lin, BlockLinearization) and variant != "points-only":
             # An independent reference: the full (6m + 3n)² system with the terms' blocks.
-            dp_f, dl_f, ok_f = linear.solve_step(lin, data, None, lam, damping, "dense")
+            dp_f, dl_f, ok_f = solve_step(lin, data, lam, damping, "dense")
             assert bool(ok_f.all())
             torch.testing.assert_close(dp_s, dp_f, rtol=0, atol=STEP_TOL * scale)
             torch.testing.assert_close(dl_s, dl_f, rtol=0, atol=STEP_TOL * scale)
@@ -394,11 +397,10 @@ def test_sparse_and_dense_reduced_systems_give_the_same_step(linearization, vari
 def test_factorization_solves_repeatedly_for_any_gradient(linearization):
     problem, data, lin = _linearized(linearization, "terms-fixed")
     B = problem.batch_size
-    sparse = linear.SparseSchur.build(data)
     lam = torch.full((B,), 1e-2, dtype=F64)
     factored = {
-        "sparse": linear.factorize(lin, data, None, lam, "marquardt", sparse=sparse),
-        "dense": linear.factorize(lin, data, None, lam, "marquardt"),
+        "sparse": factorize(lin, data, lam, "marquardt", reduced_solver="sparse"),
+        "dense": factorize(lin, data, lam, "marquardt"),
     }
     gen = torch.Generator().manual_seed(9)
     first = None
@@ -407,13 +409,12 @@ def test_factorization_solves_repeatedly_for_any_gradient(linearization):
         gl = torch.randn(lin.point_gradient.shape, generator=gen, dtype=F64)
         gp[data.fixed_poses] = 0.0
         gl[data.fixed_points] = 0.0
-        fresh = linear.solve_step(
+        fresh = solve_step(
             dataclasses.replace(lin, pose_gradient=gp, point_gradient=gl),
             data,
-            None,
             lam,
             "marquardt",
-            sparse=sparse,
+            reduced_solver="sparse",
         )
         for f in factored.values():
             dp, dl = f.solve(gp, gl)
@@ -434,13 +435,13 @@ def test_factorization_solves_repeatedly_for_any_gradient(linearization):
 
 def _count_sparse_builds(monkeypatch) -> list[int]:
     calls = []
-    build = linear.SparseSchur.build
+    build = plan_module.SparseReduced.build
 
     def spy(*args, **kwargs):
         calls.append(1)
         return build(*args, **kwargs)
 
-    monkeypatch.setattr(linear.SparseSchur, "build", staticmethod(spy))
+    monkeypatch.setattr(plan_module.SparseReduced, "build", staticmethod(spy))
     return calls
 
 
@@ -470,7 +471,7 @@ def test_sparse_and_dense_reduced_solvers_reach_the_same_solution(monkeypatch):
 
 
 def test_auto_picks_sparse_for_large_sparse_problems_only():
-    choose = linear.choose_reduced_solver
+    choose = plan_module.choose_reduced_solver
     # Local co-visibility: m = 150 poses, 3 points per frame seen by 3 frames.
     loop = _loop_problem((3,), num_poses=150, points_per_frame=3, terms=False).data
     assert choose(loop, "auto", 6 * 150 - 1) == "sparse"

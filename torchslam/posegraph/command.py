@@ -159,10 +159,11 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
     echo(f"{'iter':>4} {'cost':>14} {'lambda':>9} {'|step|':>9} {'step':>8} {'time':>9}")
 
     def progress(info: IterationInfo) -> None:
+        # One graph: the batch of the loop's IterationInfo has one problem.
         echo(
-            f"{info['iteration']:4d} {info['cost']:14.8g} {info['lambda']:9.2e} "
-            f"{info['step_norm']:9.2e} {'accepted' if info['accepted'] else 'rejected':>8} "
-            f"{info['seconds']:8.3f}s"
+            f"{info.iteration:4d} {float(info.cost[0]):14.8g} {float(info.damping[0]):9.2e} "
+            f"{float(info.step_norm[0]):9.2e} "
+            f"{'accepted' if bool(info.accepted[0]) else 'rejected':>8} {info.seconds:8.3f}s"
         )
 
     config = PoseGraphSolverConfig(

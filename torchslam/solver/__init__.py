@@ -2,11 +2,12 @@
 
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.differentiable import ImplicitConfig, solve_differentiable
-from torchslam.solver.result import SolveResult, Status
+from torchslam.solver.result import IterationInfo, SolveResult, Status
 from torchslam.solver.solve import solve, solve_tensors
 
 __all__ = [
     "ImplicitConfig",
+    "IterationInfo",
     "SolveResult",
     "SolverConfig",
     "Status",

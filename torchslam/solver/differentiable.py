@@ -7,7 +7,7 @@ weights or information matrices (and whatever produced them), tensor parameters 
 loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Four modes:
 
 - ``"unrolled"``: the Levenberg-Marquardt (or Gauss-Newton, gradient-descent) iterations run
-  with autograd on: linearize → Schur solve (:mod:`.linear`) → retract, every iteration
+  with autograd on: linearize → Schur solve (:mod:`.plan`) → retract, every iteration
   recorded. The damping λ, ν and the accept/reject and stopping decisions are taken on
   detached values, so they are constants of the graph. Memory grows with the iterations.
 - ``"truncated"``: the same, but the graph covers only the last k = ``truncate_steps``
@@ -33,7 +33,7 @@ loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Fou
 
   one linear solve per backward, whatever the number of iterations (memory O(E + m² + n)).
   ``H`` is solved with the forward pass's Schur machinery: the Gauss-Newton matrix JᵀJ at x*
-  is factored once by :func:`torchslam.solver.linear.factorize` (λ = 0; dense Cholesky or
+  is factored once by :meth:`torchslam.solver.plan.LinearPlan.factorize` (λ = 0; dense Cholesky or
   the sparse factorization, as the forward solve) and solved for the right-hand side; with
   ``ImplicitConfig(hessian="exact")`` (default) that solve
   preconditions conjugate gradients on the exact Hessian (Hessian-vector products by double
@@ -99,24 +99,12 @@ from torch import Tensor
 from torchslam import _checks, losses
 from torchslam.lie import se3
 from torchslam.problem import PointMapData, cost, cost_from_poses
-from torchslam.solver import linear
+from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_implicit_config
-from torchslam.solver.linearize import (
-    StructuredLinearization,
-    linearize,
-    whitening_factors,
-)
+from torchslam.solver.linearize import linearize, whitening_factors
+from torchslam.solver.plan import LinearPlan
 from torchslam.solver.result import SolveResult
-from torchslam.solver.solve import (
-    _finish,
-    _iterate,
-    _result,
-    _run,
-    _State,
-    check_solve_inputs,
-    solve_tensors,
-    sparse_schur,
-)
+from torchslam.solver.solve import check_solve_inputs, solve_tensors
 
 __all__ = ["Backward", "ImplicitConfig", "OnUnconverged", "solve_differentiable"]
 
@@ -250,12 +238,10 @@ def solve_differentiable(
     start = time.perf_counter()
     with _checks.validation(False):
         if backward == "unrolled":
-            state, costs, lambdas = _run(pose_tangent, points, data, config, None)
+            state, history = loop.run(pose_tangent, points, data, config, None)
         else:
-            state, costs, lambdas = _run_truncated(
-                pose_tangent, points, data, config, truncate_steps
-            )
-    return _connected(_result(state, costs, lambdas, start), pose_tangent, points, data)
+            state, history = _run_truncated(pose_tangent, points, data, config, truncate_steps)
+    return _connected(loop.result(state, history, start), pose_tangent, points, data)
 
 
 def _connected(result: SolveResult, *inputs: object) -> SolveResult:
@@ -328,16 +314,16 @@ def _check_zero_weights_unrolled(
 
 def _run_truncated(
     pose_tangent: Tensor, points: Tensor, data: PointMapData, config: SolverConfig, k: int
-) -> tuple[_State, list[Tensor], list[Tensor]]:
+) -> tuple[loop.State, loop.Histories]:
     """Solve under no_grad keeping a snapshot per iteration, then re-run each problem with
     autograd on from the snapshot before its last k accepted iterations."""
-    snapshots: list[_State] = []
+    snapshots: list[loop.State] = []
 
-    def snapshot(s: _State) -> None:
+    def snapshot(s: loop.State) -> None:
         snapshots.append(dataclasses.replace(s, lin=None))
 
     with torch.no_grad():
-        final, costs, lambdas = _run(pose_tangent, points, data, config, snapshot)
+        final, history = loop.run(pose_tangent, points, data, config, snapshot)
     # Snapshot s holds every problem after s global iterations (a problem is active in every
     # global iteration before it stops). Problem b's window starts at the last snapshot that
     # still has k accepted iterations of b ahead, or at 0 when b accepted fewer than k.
@@ -355,7 +341,7 @@ def _run_truncated(
     X = torch.where(at_start[:, None, None], points, pick("X"))
     factor = whitening_factors(data)
     lin = linearize(xi, X, data, factor, config.jacobian, config.linear_solver == "schur")
-    state = _State(
+    state = loop.State(
         xi=xi,
         X=X,
         lam=pick("lam"),
@@ -366,8 +352,8 @@ def _run_truncated(
         lin=lin,
         accepted=pick("accepted"),
     )
-    state = _iterate(state, data, factor, config, None)
-    return _finish(state, config), costs, lambdas
+    state = loop.iterate(state, data, factor, config, None)
+    return loop.finish(state, config), history
 
 
 # ------------------------------------------------------------------------------------------
@@ -515,9 +501,10 @@ def _solve_hessian(
     """w = H⁻¹ v per problem; H the Hessian of F in the chart at δ = 0 (module doc).
 
     The Gauss-Newton matrix JᵀJ at x* is solved with the forward pass's Schur machinery
-    (:func:`torchslam.solver.linear.factorize` with λ = 0, factored once, then solved with −v
-    in place of the gradient, so its step −(JᵀJ)⁻¹(−v) is the solution). For the exact
-    Hessian that solve preconditions conjugate gradients, batched with per-problem step sizes.
+    (:meth:`torchslam.solver.plan.LinearPlan.factorize` with λ = 0, factored once, then
+    solved with −v in place of the gradient, so its step −(JᵀJ)⁻¹(−v) is the solution). For
+    the exact Hessian that solve preconditions conjugate gradients, batched with per-problem
+    step sizes.
     """
     config, options = spec.config, spec.implicit
     with torch.no_grad():
@@ -526,21 +513,8 @@ def _solve_hessian(
         factor = whitening_factors(data)
         structured = config.linear_solver == "schur"
         lin = linearize(xi_star, X_star, data, factor, config.jacobian, structured)
-        sparse = sparse_schur(data, config)
-        structure = None
-        if not isinstance(lin, StructuredLinearization) and structured and sparse is None:
-            structure = linear.SchurStructure.build(data)
         lam = xi_star.new_zeros(xi_star.shape[0])
-        gauss_newton = linear.factorize(
-            lin,
-            data,
-            structure,
-            lam,
-            config.damping,
-            config.linear_solver,
-            config.schur_chunk_size,
-            sparse,
-        )
+        gauss_newton = LinearPlan.build(data, config).factorize(lin, lam)
 
     def precondition(r: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
         with torch.no_grad():
@@ -647,7 +621,7 @@ def _solve_implicit(
         cap = int(result.iterations[unconverged].max())
         rerun_config = dataclasses.replace(config, reduced_solver="dense", max_iterations=cap)
         with _checks.validation(False):
-            state, _, _ = _run(pose_tangent, points, data, rerun_config, None)
+            state, _ = loop.run(pose_tangent, points, data, rerun_config, None)
         xi = torch.where(rerun[:, None, None], state.xi, xi)
         X = torch.where(rerun[:, None, None], state.X, X)
     with _checks.validation(False):

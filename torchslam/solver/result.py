@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import enum
+import warnings
 from dataclasses import dataclass
 
 from torch import Tensor
 
 from torchslam.lie import se3
 
-__all__ = ["SolveResult", "Status"]
+__all__ = ["IterationInfo", "SolveResult", "Status"]
 
 
 class Status(enum.IntEnum):
@@ -71,6 +72,13 @@ class SolveResult:
     gradient_norm: Tensor
     # Wall-clock seconds of the whole solve.
     time_seconds: float
+    # Norm of the step tried in each iteration (accepted or not), (B, K); zero after a
+    # problem stopped.
+    step_norm_history: Tensor | None = None
+    # Seconds of the solve spent linearizing (residuals, Jacobians, blocks) and in the
+    # linear solves (assembly, factorization, back-substitution).
+    linearize_seconds: float = 0.0
+    linear_solve_seconds: float = 0.0
 
     @property
     def poses(self) -> Tensor:
@@ -95,3 +103,41 @@ class SolveResult:
                 f"({REASONS[s]})"
             )
         return "\n".join(lines)
+
+
+# Keys of the dict that callbacks received before IterationInfo was a dataclass.
+_LEGACY_KEYS = {"lambda": "damping"}
+
+
+@dataclass(frozen=True)
+class IterationInfo:
+    """Progress after one iteration, passed to a solve's ``callback`` (B problems)."""
+
+    # Iterations run so far (1 after the first).
+    iteration: int
+    # Cost ½ Σ ρ(s) at the kept estimate, (B,).
+    cost: Tensor
+    # Damping λ for the next iteration (0 for Gauss-Newton, α for descent), (B,).
+    damping: Tensor
+    # Norm of the step tried, (B,); whether it was accepted, bool (B,).
+    step_norm: Tensor
+    accepted: Tensor
+    # Problems still running after this iteration, bool (B,).
+    active: Tensor
+    # Max |gradient| at the kept estimate, (B,).
+    gradient_norm: Tensor
+    # Seconds since the solve started.
+    seconds: float
+
+    def __getitem__(self, key: str):
+        """Deprecated dict access (``info["cost"]``, ``info["lambda"]``): use attributes."""
+        warnings.warn(
+            f"IterationInfo[{key!r}] is deprecated and will be removed in the next release; "
+            f"use the attribute info.{_LEGACY_KEYS.get(key, key)}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        try:
+            return getattr(self, _LEGACY_KEYS.get(key, key))
+        except AttributeError:
+            raise KeyError(key) from None

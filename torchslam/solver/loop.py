@@ -1,0 +1,363 @@
+"""The one damped Gauss-Newton / Levenberg-Marquardt / gradient-descent loop, batched.
+
+One straight path per iteration: linearize (:mod:`.linearize`) → factorize the damped system
+with the solve's plan (:class:`.plan.LinearPlan`, built once) and solve for the step → retract
+(:meth:`torchslam.manifold.SE3Tangent.plus` for the poses, X ← X + δX for the points) →
+accept or reject → stopping rules (:func:`update_status`). Each of the B problems has its own
+damping λ, its own accept/reject decisions and its own convergence; a problem that stopped
+keeps its values while the others go on. Every decision is taken on detached values, so the
+same loop runs under ``torch.no_grad`` (:func:`torchslam.solve_tensors`) or with autograd
+(the unrolled and truncated backward of :mod:`.differentiable`).
+
+Levenberg-Marquardt uses the gain ratio ϱ = (F(x) − F(x ⊞ δ)) / (L(0) − L(δ)), with the
+model decrease L(0) − L(δ) = −(r̃ᵀJ̃δ + ½‖J̃δ‖²) evaluated exactly from the blocks, and
+Nielsen's update: accepted (ϱ > 0): λ ← λ·max(⅓, 1 − (2ϱ − 1)³), ν ← 2; rejected: λ ← λ·ν,
+ν ← 2ν. Gauss-Newton is the undamped step, always taken. Gradient descent is the seed's
+δ = −α Jᵀr with α halved after a step that does not decrease the cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchslam import manifold
+from torchslam.problem import PointMapData
+from torchslam.solver.config import SolverConfig
+from torchslam.solver.linearize import linearize, model_decrease, whitening_factors
+from torchslam.solver.plan import LinearPlan
+from torchslam.solver.result import SolveResult, Status
+
+__all__ = ["State", "retract", "run", "update_status"]
+
+# The manifold of the pose parameters: ξ ⊞ δ = Log(Exp(ξ)·Exp(δ)).
+_POSES = manifold.SE3Tangent()
+
+
+def retract(pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor]:
+    """x ⊞ δ: ξ ← Log(Exp(ξ)·Exp(δp)) (seed eq. L1/L2, :class:`torchslam.manifold.SE3Tangent`),
+    X ← X + δl.
+
+    A pose whose step is exactly zero (a fixed pose) keeps its ξ bit for bit: the Log∘Exp
+    round trip would move it by a few ulps.
+    """
+    moved = _POSES.plus(pose_tangent, dp)
+    unmoved = (dp == 0).all(dim=-1, keepdim=True)
+    return torch.where(unmoved, pose_tangent, moved), points + dl
+
+
+@dataclass
+class State:
+    """The iterate of B problems and the loop's bookkeeping."""
+
+    xi: Tensor
+    X: Tensor
+    lam: Tensor
+    nu: Tensor
+    status: Tensor
+    iterations: Tensor
+    cost: Tensor
+    lin: object
+    # Accepted iterations so far per problem, long (B,).
+    accepted: Tensor
+    # Step norm and acceptance of the last iteration, (B,) (None before the first).
+    step_norm: Tensor | None = None
+    last_accepted: Tensor | None = None
+    # Wall-clock seconds spent in linearize and in the linear solves so far.
+    linearize_seconds: float = 0.0
+    linear_solve_seconds: float = 0.0
+
+
+def gradient_norm(lin) -> Tensor:
+    """max |g| over poses and points, (B,)."""
+    # One cat, so that a problem without points (pose terms only) works too.
+    g = torch.cat((lin.pose_gradient.flatten(1), lin.point_gradient.flatten(1)), dim=1)
+    return g.abs().amax(-1)
+
+
+def initial_state(
+    xi: Tensor, X: Tensor, data: PointMapData, factor: Tensor | None, config: SolverConfig
+) -> State:
+    """The state before the first iteration: λ₀ (0 for Gauss-Newton, α for descent), the
+    linearization at (ξ, X), and the status of problems that start converged or non-finite."""
+    B = xi.shape[0]
+    lam = xi.new_full((B,), config.initial_lambda)
+    if config.algorithm == "gauss_newton":
+        lam = torch.zeros_like(lam)
+    elif config.algorithm == "gradient_descent":
+        lam = torch.full_like(lam, config.step_size)
+    tick = time.perf_counter()
+    lin = linearize(xi, X, data, factor, config.jacobian, config.linear_solver == "schur")
+    seconds = time.perf_counter() - tick
+    status = torch.zeros(B, dtype=torch.long, device=xi.device)
+    status = torch.where(
+        gradient_norm(lin).detach() <= config.gradient_tolerance,
+        int(Status.CONVERGED_GRADIENT),
+        status,
+    )
+    status = torch.where(torch.isfinite(lin.cost.detach()), status, int(Status.NON_FINITE))
+    return State(
+        xi=xi,
+        X=X,
+        lam=lam,
+        nu=torch.full_like(lam, 2.0),
+        status=status,
+        iterations=torch.zeros(B, dtype=torch.long, device=xi.device),
+        cost=lin.cost,
+        lin=lin,
+        accepted=torch.zeros(B, dtype=torch.long, device=xi.device),
+        linearize_seconds=seconds,
+    )
+
+
+def _select(mask: Tensor, new, old):
+    """Per-problem choice between two linearizations (mask (B,) → new); None if forms differ.
+
+    Recurses into nested dataclasses (the pose terms) and tuples of tensors."""
+    if isinstance(new, Tensor) and isinstance(old, Tensor):
+        return torch.where(mask.reshape(-1, *([1] * (new.dim() - 1))), new, old)
+    if new is None or type(new) is not type(old):
+        return None
+    if isinstance(new, tuple):
+        return tuple(_select(mask, a, b) for a, b in zip(new, old, strict=True))
+    fields = {}
+    for name in type(new).__dataclass_fields__:
+        fields[name] = _select(mask, getattr(new, name), getattr(old, name))
+    return type(new)(**fields)
+
+
+def update_status(
+    status: Tensor,
+    config: SolverConfig,
+    *,
+    active: Tensor,
+    accepted: Tensor,
+    ok: Tensor,
+    old_cost: Tensor,
+    new_cost: Tensor,
+    predicted: Tensor | None,
+    step_norm: Tensor,
+    x_norm: Tensor,
+    gradient: Tensor,
+    lam: Tensor,
+    cost: Tensor,
+) -> Tensor:
+    """The stopping rules, applied after an iteration to the problems still running, (B,).
+
+    In this order (the first that holds names the status):
+
+    1. ``CONVERGED_FUNCTION``: an accepted step decreased the cost by at most
+       ``function_tolerance``·F, or (Levenberg-Marquardt) the model predicts at most that:
+       nothing is left to gain.
+    2. ``CONVERGED_GRADIENT``: max |g| ≤ ``gradient_tolerance`` at the kept estimate.
+    3. ``CONVERGED_PARAMETER``: ‖δ‖ ≤ ``parameter_tolerance``·(‖x‖ + ``parameter_tolerance``),
+       ‖x‖ the norm of (ξ, X) of the problem.
+    4. ``LINEAR_SOLVE_FAILED`` (Gauss-Newton only): the normal equations were not positive
+       definite, and there is no damping to fall back on.
+    5. ``DAMPING_LIMIT`` (Levenberg-Marquardt only): λ > ``max_lambda``.
+    6. ``NON_FINITE``: the kept cost is not finite.
+
+    ``MAX_ITERATIONS`` is set by :func:`run` when the loop ends.
+    """
+    running = status == int(Status.RUNNING)
+    f_conv = accepted & ((old_cost - new_cost).abs() <= config.function_tolerance * old_cost)
+    if predicted is not None:
+        f_conv = f_conv | (active & ok & (predicted.abs() <= config.function_tolerance * old_cost))
+    rules = [
+        (active & f_conv, Status.CONVERGED_FUNCTION),
+        (active & (gradient <= config.gradient_tolerance), Status.CONVERGED_GRADIENT),
+        (
+            active
+            & ok
+            & (step_norm <= config.parameter_tolerance * (x_norm + config.parameter_tolerance)),
+            Status.CONVERGED_PARAMETER,
+        ),
+    ]
+    if config.algorithm == "gauss_newton":
+        rules.append((active & ~ok, Status.LINEAR_SOLVE_FAILED))
+    if config.algorithm == "levenberg_marquardt":
+        rules.append((lam > config.max_lambda, Status.DAMPING_LIMIT))
+    rules.append((active & ~torch.isfinite(cost), Status.NON_FINITE))
+    for holds, outcome in rules:
+        status = torch.where(running & holds, int(outcome), status)
+        running = status == int(Status.RUNNING)
+    return status
+
+
+def iterate(
+    state: State,
+    data: PointMapData,
+    factor: Tensor | None,
+    config: SolverConfig,
+    on_step: Callable[[State], None] | None,
+    plan: LinearPlan | None = None,
+) -> State:
+    """Iterations from ``state`` until no problem is running (a problem stops by the rules of
+    :func:`update_status` or at ``config.max_iterations``); differentiable w.r.t. the iterate
+    and the data when autograd is on. ``plan`` defaults to :meth:`LinearPlan.build`."""
+    algorithm = config.algorithm
+    structured = config.linear_solver == "schur"
+    if plan is None and algorithm != "gradient_descent":
+        plan = LinearPlan.build(data, config)
+    running = int(Status.RUNNING)
+    s = state
+    xi, X, lam, nu, status, lin = s.xi, s.X, s.lam, s.nu, s.status, s.lin
+    iterations, cost, accepted_total = s.iterations, s.cost, s.accepted
+    linearize_seconds, solve_seconds = s.linearize_seconds, s.linear_solve_seconds
+    while True:
+        active = (status == running) & (iterations < config.max_iterations)
+        if not bool(active.any()):
+            break
+        iterations = iterations + active.long()
+        tick = time.perf_counter()
+        if algorithm == "gradient_descent":
+            dp = -lam[:, None, None] * lin.pose_gradient
+            dl = -lam[:, None, None] * lin.point_gradient
+            ok = torch.ones_like(active)
+        else:
+            factorization = plan.factorize(lin, lam)
+            dp, dl = factorization.solve(lin.pose_gradient, lin.point_gradient)
+            ok = factorization.ok
+        tock = time.perf_counter()
+        solve_seconds += tock - tick
+        xi_new, X_new = retract(xi, X, dp, dl)
+        lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured)
+        linearize_seconds += time.perf_counter() - tock
+        with torch.no_grad():
+            # The decisions: constants of the graph.
+            step_norm = torch.sqrt(dp.square().flatten(1).sum(-1) + dl.square().flatten(1).sum(-1))
+            x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
+            old_cost, new_cost = cost.detach(), lin_new.cost.detach()
+            finite = torch.isfinite(new_cost) & torch.isfinite(step_norm)
+            predicted = None
+            if algorithm == "levenberg_marquardt":
+                predicted = model_decrease(lin, data, dp, dl)
+                gain = (old_cost - new_cost) / predicted
+                accepted = active & ok & finite & (predicted > 0) & (gain > 0)
+                factor_up = torch.clamp(1 - (2 * gain - 1) ** 3, min=1 / 3)
+                lam = torch.where(accepted, (lam * factor_up).clamp_min(config.min_lambda), lam)
+                rejected = active & ~accepted
+                lam = torch.where(rejected, lam * nu, lam)
+                nu = torch.where(accepted, 2.0, torch.where(rejected, nu * 2, nu))
+            elif algorithm == "gauss_newton":
+                accepted = active & ok & finite
+            else:
+                accepted = active & finite & (new_cost < old_cost)
+                lam = torch.where(active & ~accepted, lam * 0.5, lam)
+        accepted_total = accepted_total + accepted.long()
+        xi = torch.where(accepted[:, None, None], xi_new, xi)
+        X = torch.where(accepted[:, None, None], X_new, X)
+        cost = torch.where(accepted, lin_new.cost, cost)
+        lin = _select(accepted, lin_new, lin)
+        if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
+            lin = linearize(xi, X, data, factor, config.jacobian, structured)
+        with torch.no_grad():
+            status = update_status(
+                status,
+                config,
+                active=active,
+                accepted=accepted,
+                ok=ok,
+                old_cost=old_cost,
+                new_cost=new_cost,
+                predicted=predicted,
+                step_norm=step_norm,
+                x_norm=x_norm,
+                gradient=gradient_norm(lin),
+                lam=lam,
+                cost=cost.detach(),
+            )
+        s = State(
+            xi,
+            X,
+            lam,
+            nu,
+            status,
+            iterations,
+            cost,
+            lin,
+            accepted_total,
+            step_norm,
+            accepted,
+            linearize_seconds,
+            solve_seconds,
+        )
+        if on_step is not None:
+            on_step(s)
+    return s
+
+
+def finish(state: State, config: SolverConfig) -> State:
+    """Problems still running have used up ``max_iterations``."""
+    stopped = (state.status == int(Status.RUNNING)) & (state.iterations >= config.max_iterations)
+    status = torch.where(stopped, int(Status.MAX_ITERATIONS), state.status)
+    return dataclasses.replace(state, status=status)
+
+
+@dataclass
+class Histories:
+    """Per-iteration records of a run: cost, λ and step norm, each a list of (B,) tensors."""
+
+    costs: list[Tensor]
+    lambdas: list[Tensor]
+    steps: list[Tensor]
+
+
+def run(
+    pose_tangent: Tensor,
+    points: Tensor,
+    data: PointMapData,
+    config: SolverConfig,
+    on_step: Callable[[State], None] | None,
+    report_initial: bool = True,
+    plan: LinearPlan | None = None,
+) -> tuple[State, Histories]:
+    """The whole solve from the initial guess (with autograd as the caller has it).
+
+    ``on_step`` sees the state after every iteration (and the initial one when
+    ``report_initial``); ``plan`` defaults to :meth:`LinearPlan.build`. Returns the final
+    state and the histories."""
+    factor = whitening_factors(data)
+    state = initial_state(pose_tangent, points, data, factor, config)
+    history = Histories([state.cost.detach().clone()], [state.lam.clone()], [])
+
+    def record(s: State) -> None:
+        history.costs.append(s.cost.detach().clone())
+        history.lambdas.append(s.lam.clone())
+        history.steps.append(s.step_norm.clone())
+        if on_step is not None:
+            on_step(s)
+
+    if on_step is not None and report_initial:
+        on_step(state)
+    state = iterate(state, data, factor, config, record, plan)
+    return finish(state, config), history
+
+
+def result(state: State, history: Histories, start: float) -> SolveResult:
+    """The :class:`SolveResult` of a finished run."""
+    steps = (
+        torch.stack(history.steps, dim=1)
+        if history.steps
+        else state.cost.detach().new_zeros(state.cost.shape[0], 0)
+    )
+    return SolveResult(
+        pose_tangent=state.xi,
+        points=state.X,
+        status=[Status(int(s)) for s in state.status.tolist()],
+        iterations=state.iterations,
+        initial_cost=history.costs[0],
+        final_cost=state.cost,
+        cost_history=torch.stack(history.costs, dim=1),
+        lambda_history=torch.stack(history.lambdas, dim=1),
+        gradient_norm=gradient_norm(state.lin).detach(),
+        time_seconds=time.perf_counter() - start,
+        step_norm_history=steps,
+        linearize_seconds=state.linearize_seconds,
+        linear_solve_seconds=state.linear_solve_seconds,
+    )

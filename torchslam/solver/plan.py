@@ -1,0 +1,605 @@
+"""The planned linear solve: built once per solve, then one factorization per iteration.
+
+:meth:`LinearPlan.build` decides everything that is fixed for a solve — the method (Schur
+complement on the points, or the full system for small problems and cross-checks), the
+reduced solver (dense batched Cholesky, or sparse :mod:`.sparse` with its block pattern and
+fill-reducing ordering), the observation pairs that share a point and the chunking — and
+:meth:`LinearPlan.factorize` turns a linearization (:mod:`.linearize`) and the damping λ into a
+:class:`Factorization` whose :meth:`~Factorization.solve` gives the step −H⁻¹g for any
+gradient. The forward solve, the implicit backward (λ = 0, many right-hand sides) and
+covariances all go through it.
+
+The system of one problem, with poses p and points l,
+
+    [ U + λD_U    W       ] [δp]     [g_p]
+    [ Wᵀ          V + λD_V] [δl] = − [g_l]
+
+is reduced on the points (the classic bundle-adjustment elimination; V is block-diagonal 3×3:
+each coupling edge e of :func:`.linearize.coupling_edges` touches one point):
+
+    S = (U + λD_U) − Σ_j W_j (V_j + λD_Vj)⁻¹ W_jᵀ,   S δp = −g_p + W V⁻¹ g_l,
+    δl = −V⁻¹ (g_l + Wᵀ δp)
+
+(the one back-substitution, :meth:`Factorization.solve`). S is assembled from pairs of edges of
+the same point: the pair (a, b) with poses (i_a ≤ i_b) adds −Y_a W_bᵀ, Y_a = W_a V_j⁻¹, to the
+upper block (i_a, i_b); the terms' pose pairs add their blocks J̃_aᵀJ̃_b. Memory is
+O(E + P + pattern) with P = Σ_j (edges of j)², processed in chunks; the dense (6m+3n)² matrix
+is formed only by the "dense" method. A problem whose matrix is not positive definite is
+reported (``ok`` False, zero step), never crashes the batch.
+
+Adding a reduced solver means writing one class with the interface of :class:`DenseReduced`
+(``slots``, ``num_slots``, ``factor``) and choosing it in :meth:`LinearPlan.build`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse
+import torch
+from torch import Tensor
+
+from torchslam.problem import PointMapData
+from torchslam.solver.config import SolverConfig
+from torchslam.solver.linearize import (
+    BlockLinearization,
+    CouplingEdges,
+    StructuredLinearization,
+    blocks_from_monomials,
+    coupling_edges,
+    monomials,
+    term_pair_keys,
+)
+from torchslam.solver.sparse import BlockPattern, SparseFactor, factorization_work
+
+__all__ = [
+    "STRUCTURED_CHUNK_ENTRIES",
+    "DenseReduced",
+    "Factorization",
+    "LinearPlan",
+    "PairStructure",
+    "SparseReduced",
+    "choose_reduced_solver",
+    "damp",
+]
+
+
+def damp(blocks: Tensor, lam: Tensor, damping: str) -> Tensor:
+    """Add λD to square diagonal blocks (B, k, d, d); D = diag(block) clamped (Marquardt,
+    as Ceres: [1e-6, 1e32]) or I (Levenberg). ``lam`` has shape (B,)."""
+    eye = torch.eye(blocks.shape[-1], dtype=blocks.dtype, device=blocks.device)
+    if damping == "levenberg":
+        D = eye
+    else:
+        D = torch.diagonal(blocks, dim1=-2, dim2=-1).clamp(1e-6, 1e32)[..., None] * eye
+    return blocks + lam[:, None, None, None] * D
+
+
+# ------------------------------------------------------------------------------------------
+# Structure fixed for a solve
+
+
+@dataclass
+class PairStructure:
+    """Pairs of coupling edges that share a point (the sparsity of S is fixed for a solve)."""
+
+    # First / second edge of each pair, flat indices into B·E'.
+    first: Tensor
+    second: Tensor
+    # Upper block key (b·m + i_first)·m + i_second (i_first ≤ i_second) each pair adds to.
+    key: Tensor
+    # Self-pairs (a = b) and pairs of two edges in one pose (a diagonal block), bool.
+    self_pair: Tensor
+    same_pose: Tensor
+    # Flat index b·n + j of the shared point.
+    point: Tensor
+
+    @staticmethod
+    def build(edges: CouplingEdges, m: int, n: int) -> PairStructure:
+        B, E = edges.pose_index.shape
+        device = edges.pose_index.device
+        batch = torch.arange(B, device=device)[:, None].expand(B, E)
+        obs = edges.active.reshape(-1).nonzero().squeeze(1)
+        point_key = (batch * n + edges.point_index).reshape(-1)[obs]
+        order = torch.argsort(point_key, stable=True)
+        obs, point_key = obs[order], point_key[order]
+        _, counts = torch.unique_consecutive(point_key, return_counts=True)
+        group_start = torch.cumsum(counts, 0) - counts
+        per_obs_count = torch.repeat_interleave(counts, counts)
+        per_obs_start = torch.repeat_interleave(group_start, counts)
+        # All ordered pairs (a, b) inside each point's group.
+        first_pos = torch.repeat_interleave(torch.arange(obs.numel(), device=device), per_obs_count)
+        offset = torch.arange(first_pos.numel(), device=device) - torch.repeat_interleave(
+            torch.cumsum(per_obs_count, 0) - per_obs_count, per_obs_count
+        )
+        second_pos = per_obs_start[first_pos] + offset
+        first, second = obs[first_pos], obs[second_pos]
+        pose_flat = edges.pose_index.reshape(-1)
+        i_a, i_b = pose_flat[first], pose_flat[second]
+        keep = (i_a < i_b) | ((i_a == i_b) & (first <= second))
+        first, second, i_a, i_b = first[keep], second[keep], i_a[keep], i_b[keep]
+        b = first // E
+        return PairStructure(
+            first=first,
+            second=second,
+            key=(b * m + i_a) * m + i_b,
+            self_pair=first == second,
+            same_pose=i_a == i_b,
+            point=(batch * n + edges.point_index).reshape(-1)[first],
+        )
+
+    @property
+    def num_pairs(self) -> int:
+        return self.first.numel()
+
+
+def _diagonal_keys(B: int, m: int, device: torch.device) -> Tensor:
+    """Keys (b·m + i)·m + i of the diagonal blocks, (B·m,)."""
+    return torch.arange(B * m, device=device) * m + torch.arange(m, device=device).repeat(B)
+
+
+def _upper_term_pairs(data: PointMapData) -> tuple[Tensor, Tensor]:
+    """(keys, positions) of the terms' pose-pair blocks that are upper blocks (i ≤ k): their
+    keys and their positions in ``lin.terms.pair_blocks`` flattened over B."""
+    m = data.num_poses
+    keys = term_pair_keys(data).reshape(-1)
+    i, k = (keys % (m * m)) // m, keys % m
+    keep = (i <= k).nonzero().squeeze(1)
+    return keys[keep], keep
+
+
+# ------------------------------------------------------------------------------------------
+# Reduced solvers: the pose system S, from its upper 6 × 6 blocks
+
+
+@dataclass
+class _DenseCholesky:
+    """Batched Cholesky of (B, N, N) SPD matrices; never raises on an indefinite one."""
+
+    L: Tensor
+    ok: Tensor
+
+    @staticmethod
+    def of(A: Tensor) -> _DenseCholesky:
+        L, info = torch.linalg.cholesky_ex(A)
+        ok = info == 0
+        if not bool(ok.all()):  # rare: swap in I so the batched solve stays finite
+            eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+            L = torch.where(ok[..., None, None], L, eye)
+        return _DenseCholesky(L, ok)
+
+    def solve(self, b: Tensor) -> Tensor:
+        """x with A x = b, (B, N) → (B, N); zeros where the factorization failed."""
+        x = torch.cholesky_solve(b[..., None], self.L)[..., 0]
+        return torch.where(self.ok[..., None], x, torch.zeros_like(x))
+
+
+@dataclass
+class DenseReduced:
+    """S of B problems as dense (B, 6m, 6m) matrices, factored by batched Cholesky.
+
+    Differentiable (the unrolled backward runs through it). Slots are the block keys
+    themselves: a (B·m·m, 6, 6) buffer holds the upper blocks.
+    """
+
+    batch_size: int
+    num_poses: int
+
+    @property
+    def num_slots(self) -> int:
+        return self.batch_size * self.num_poses**2
+
+    def slots(self, keys: Tensor) -> Tensor:
+        """Buffer slot of each upper block key (b·m + i)·m + k."""
+        return keys
+
+    def matrix(self, upper: Tensor) -> Tensor:
+        """The symmetric (B, 6m, 6m) matrix of the upper blocks (num_slots, 6, 6)."""
+        B, m = self.batch_size, self.num_poses
+        A = upper.reshape(B, m, m, 6, 6)
+        strict = ~torch.eye(m, dtype=torch.bool, device=A.device)[None, :, :, None, None]
+        full = A + torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
+        return full.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+
+    def factor(self, upper: Tensor, dense: Tensor | None = None) -> _DenseCholesky:
+        """Factor S = (matrix of ``upper``) + ``dense`` (an optional (B, 6m, 6m) part)."""
+        S = self.matrix(upper)
+        return _DenseCholesky.of(S if dense is None else S + dense)
+
+
+@dataclass
+class SparseReduced:
+    """S of B problems in a block-sparse pattern, factored by :mod:`.sparse` (SuperLU with a
+    fill-reducing ordering); not differentiable (the implicit backward works with it)."""
+
+    pattern: BlockPattern
+
+    @staticmethod
+    def build(keys: Tensor, batch_size: int, num_poses: int, ordering: str) -> SparseReduced:
+        """The pattern of the diagonal blocks and the upper blocks ``keys`` (any order)."""
+        pattern, _ = BlockPattern.build(keys, batch_size, num_poses, ordering)
+        return SparseReduced(pattern)
+
+    @property
+    def num_slots(self) -> int:
+        return self.pattern.num_unique
+
+    def slots(self, keys: Tensor) -> Tensor:
+        """Pattern slot of each upper block key (every key must be in the pattern)."""
+        return torch.searchsorted(self.pattern.keys, keys)
+
+    def factor(self, upper: Tensor, dense: Tensor | None = None) -> SparseFactor:
+        if dense is not None:
+            raise ValueError("SparseReduced.factor: a dense part has no place in the pattern")
+        return self.pattern.factor(upper)
+
+
+# ------------------------------------------------------------------------------------------
+# Elimination of the points: W·, Wᵀ·, V⁻¹· for either linearization form
+
+
+@dataclass
+class _BlockElimination:
+    """W_e (B·E', 6, 3) on the coupling edges and V_j⁻¹ (B, n, 3, 3)."""
+
+    W: Tensor
+    V_inv: Tensor
+    pose_slot: Tensor
+    point_slot: Tensor
+    shape: tuple[int, int, int]
+
+    def point_solve(self, x: Tensor) -> Tensor:
+        return (self.V_inv @ x[..., None])[..., 0]
+
+    def couple(self, y: Tensor) -> Tensor:
+        """Σ_e W_e y_j(e) per pose, y (B, n, 3) → (B, m, 6)."""
+        B, m, _ = self.shape
+        y_e = y.reshape(-1, 3)[self.point_slot]
+        Wy = (self.W @ y_e[..., None])[..., 0]
+        return Wy.new_zeros(B * m, 6).index_add(0, self.pose_slot, Wy).reshape(B, m, 6)
+
+    def couple_transposed(self, dp: Tensor) -> Tensor:
+        """Σ_e W_eᵀ δp_i(e) per point, dp (B, m, 6) → (B, n, 3)."""
+        B, _, n = self.shape
+        dp_e = dp.reshape(-1, 6)[self.pose_slot]
+        Wt_dp = (self.W.transpose(-1, -2) @ dp_e[..., None])[..., 0]
+        return Wt_dp.new_zeros(B * n, 3).index_add(0, self.point_slot, Wt_dp).reshape(B, n, 3)
+
+
+@dataclass
+class _StructuredElimination:
+    """W_e = w_e G_jᵀ (G_j = [−[X_j]× | I]) and V_j = v_j I (module doc of .linearize)."""
+
+    weight: Tensor  # coupling weights w_e, (B·E,)
+    X_e: Tensor  # the edge's point X_j(e), (B·E, 3)
+    v: Tensor  # damped v_j, (B, n)
+    pose_slot: Tensor
+    point_slot: Tensor
+    shape: tuple[int, int, int]
+
+    def point_solve(self, x: Tensor) -> Tensor:
+        return x / self.v[..., None]
+
+    def couple(self, y: Tensor) -> Tensor:
+        B, m, _ = self.shape
+        y_e = self.weight[:, None] * y.reshape(-1, 3)[self.point_slot]
+        Gty = torch.cat((torch.linalg.cross(self.X_e, y_e, dim=-1), y_e), -1)
+        return Gty.new_zeros(B * m, 6).index_add(0, self.pose_slot, Gty).reshape(B, m, 6)
+
+    def couple_transposed(self, dp: Tensor) -> Tensor:
+        B, _, n = self.shape
+        dp_e = dp.reshape(-1, 6)[self.pose_slot]
+        G_dp = torch.linalg.cross(dp_e[:, :3], self.X_e, dim=-1) + dp_e[:, 3:]
+        acc = (self.weight[:, None] * G_dp).new_zeros(B * n, 3)
+        return acc.index_add(0, self.point_slot, self.weight[:, None] * G_dp).reshape(B, n, 3)
+
+
+@dataclass
+class Factorization:
+    """A damped system factored once: :meth:`solve` gives the step −H⁻¹g for any gradient."""
+
+    # The factored reduced system S (Schur) or the full system (method "dense"): has
+    # ``ok`` (B,) and ``solve`` (B, N) → (B, N).
+    factor: _DenseCholesky | SparseFactor
+    # The point elimination (Schur), or None for the full system.
+    elimination: _BlockElimination | _StructuredElimination | None
+    # Problems whose other parts (the 3 × 3 point blocks) factored, bool (B,) or None.
+    other_ok: Tensor | None = None
+    # (B, m, n) of the system.
+    shape: tuple[int, int, int] = field(default=(0, 0, 0))
+
+    @property
+    def ok(self) -> Tensor:
+        """False where a factorization failed or gave a non-finite step (then zero), (B,)."""
+        ok = self.factor.ok
+        return ok if self.other_ok is None else ok & self.other_ok
+
+    def solve(self, pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
+        """The step (δp (B, m, 6), δl (B, n, 3)) = −H⁻¹ g for the gradient g (module doc)."""
+        B, m, n = self.shape
+        elim = self.elimination
+        if elim is None:
+            g = torch.cat((pose_gradient.reshape(B, 6 * m), point_gradient.reshape(B, 3 * n)), -1)
+            x = self.factor.solve(-g)
+            return x[:, : 6 * m].reshape(B, m, 6), x[:, 6 * m :].reshape(B, n, 3)
+        rhs = elim.couple(elim.point_solve(point_gradient)) - pose_gradient
+        dp = self.factor.solve(rhs.reshape(B, 6 * m)).reshape(B, m, 6)
+        return dp, -elim.point_solve(point_gradient + elim.couple_transposed(dp))
+
+
+# ------------------------------------------------------------------------------------------
+# The plan
+
+
+# The sparse factorization (SuperLU, scalar entries) runs ~10× below the dense batched
+# Cholesky's flop rate, and assembly adds to it: sparse wins when its work is well below.
+SPARSE_WORK_FACTOR = 30.0
+# Entries of the (B, 10·m, c) buffer of one chunk of c points in the structured dense path.
+STRUCTURED_CHUNK_ENTRIES = 1 << 24
+
+
+@dataclass
+class LinearPlan:
+    """What the linear solve of every iteration of one solve does (module doc)."""
+
+    # "schur" (points eliminated) or "dense" (the full (6m + 3n)² system).
+    method: str
+    damping: str
+    # The reduced solver of the Schur method (None for "dense").
+    reduced: DenseReduced | SparseReduced | None
+    edges: CouplingEdges
+    # Edge pairs of each point; built on first use (the structured dense path needs none).
+    pairs: PairStructure | None
+    # Pairs per chunk of the pair products.
+    chunk_size: int
+    shape: tuple[int, int, int]
+    # Upper term pairs: their slots in the reduced solver and positions in pair_blocks.
+    term_slots: Tensor | None = None
+    term_positions: Tensor | None = None
+    pair_slots: Tensor | None = None
+    diagonal_slots: Tensor | None = None
+    # Keys of all the terms' pose-pair blocks, flat (B·P,) (the full system adds them all).
+    term_keys: Tensor | None = None
+
+    @staticmethod
+    def build(data: PointMapData, config: SolverConfig) -> LinearPlan:
+        """The plan for solving ``data`` with ``config`` (linear_solver, reduced_solver,
+        dense_max_variables, ordering, schur_chunk_size, damping)."""
+        B = data.pose_index.shape[0]
+        m, n = data.num_poses, data.num_points
+        edges = coupling_edges(data)
+        shape = (B, m, n)
+        if config.linear_solver == "dense":
+            return LinearPlan(
+                "dense",
+                config.damping,
+                None,
+                edges,
+                None,
+                config.schur_chunk_size,
+                shape,
+                term_keys=term_pair_keys(data).reshape(-1),
+            )
+        choice = choose_reduced_solver(
+            data, config.reduced_solver, config.dense_max_variables, config.ordering, edges=edges
+        )
+        term_keys, term_positions = _upper_term_pairs(data)
+        device = data.pose_index.device
+        pairs = None
+        if choice == "sparse":
+            pairs = PairStructure.build(edges, m, n)
+            reduced = SparseReduced.build(torch.cat((pairs.key, term_keys)), B, m, config.ordering)
+            pair_slots = reduced.slots(pairs.key)
+        else:
+            reduced = DenseReduced(B, m)
+            pair_slots = None
+        return LinearPlan(
+            "schur",
+            config.damping,
+            reduced,
+            edges,
+            pairs,
+            config.schur_chunk_size,
+            shape,
+            term_slots=reduced.slots(term_keys),
+            term_positions=term_positions,
+            pair_slots=pair_slots,
+            diagonal_slots=reduced.slots(_diagonal_keys(B, m, device)),
+        )
+
+    @property
+    def sparse(self) -> bool:
+        """Whether the reduced system is factored sparsely."""
+        return isinstance(self.reduced, SparseReduced)
+
+    def factorize(
+        self, lin: BlockLinearization | StructuredLinearization, lam: Tensor
+    ) -> Factorization:
+        """Factor the system of ``lin`` damped by ``lam`` (B,) (module doc)."""
+        if self.method == "dense":
+            if isinstance(lin, StructuredLinearization):
+                raise ValueError(
+                    "LinearPlan.factorize: the 'dense' method needs the block linearization"
+                )
+            return self._factorize_full(lin, lam)
+        B, m, n = self.shape
+        U = damp(lin.pose_blocks, lam, self.damping)
+        upper = U.new_zeros(self.reduced.num_slots, 6, 6)
+        upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
+        if lin.terms is not None and self.term_positions.numel() > 0:
+            blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_positions]
+            upper = upper.index_add(0, self.term_slots, blocks)
+        pose_slot = (torch.arange(B, device=U.device)[:, None] * m + self.edges.pose_index).reshape(
+            -1
+        )
+        point_slot = (
+            torch.arange(B, device=U.device)[:, None] * n + self.edges.point_index
+        ).reshape(-1)
+        if isinstance(lin, StructuredLinearization):
+            v = lin.point_weight
+            if self.damping == "levenberg":
+                v_d = v + lam[:, None]
+            else:
+                v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
+            w = lin.coupling_weight.reshape(-1)
+            X_e = lin.points.reshape(-1, 3)[point_slot]
+            elim = _StructuredElimination(w, X_e, v_d, pose_slot, point_slot, self.shape)
+            dense = None
+            if self.sparse:
+                pairs = self._pairs()
+                coefficient = -(w[pairs.first] * w[pairs.second]) / v_d.reshape(-1)[pairs.point]
+                mirror = pairs.same_pose & ~pairs.self_pair
+                coefficient = torch.where(mirror, 2 * coefficient, coefficient)
+                mono = monomials(lin.points.reshape(-1, 3)[pairs.point]) * coefficient[:, None]
+                sums = mono.new_zeros(self.reduced.num_slots, 10)
+                sums = sums.index_add(0, self.pair_slots, mono)
+                upper = upper + blocks_from_monomials(sums)
+            else:
+                dense = -self._monomial_products(lin, v_d)
+            return Factorization(self.reduced.factor(upper, dense), elim, None, self.shape)
+        V = damp(lin.point_blocks, lam, self.damping)
+        # V⁻¹ through Cholesky of each 3×3 block (a failure marks the whole problem).
+        LV, info = torch.linalg.cholesky_ex(V)
+        point_ok = (info == 0).all(dim=-1)
+        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
+        V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
+        W = lin.coupling.reshape(-1, 6, 3)
+        elim = _BlockElimination(W, V_inv, pose_slot, point_slot, self.shape)
+        pairs = self._pairs()
+        if pairs.num_pairs:
+            Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
+            slots = self.pair_slots if self.pair_slots is not None else pairs.key
+            for start in range(0, pairs.num_pairs, self.chunk_size):
+                sl = slice(start, start + self.chunk_size)
+                prod = Y[pairs.first[sl]] @ W[pairs.second[sl]].transpose(-1, -2)
+                mirror = pairs.same_pose[sl] & ~pairs.self_pair[sl]
+                prod = torch.where(mirror[:, None, None], prod + prod.transpose(-1, -2), prod)
+                upper = upper.index_add(0, slots[sl], -prod)
+        return Factorization(self.reduced.factor(upper), elim, point_ok, self.shape)
+
+    def _pairs(self) -> PairStructure:
+        if self.pairs is None:
+            _, m, n = self.shape
+            self.pairs = PairStructure.build(self.edges, m, n)
+        return self.pairs
+
+    def _monomial_products(self, lin: StructuredLinearization, v_d: Tensor) -> Tensor:
+        """Σ_j (a_ij a_kj / v_j) G_jᵀ G_j as a dense (B, 6m, 6m) matrix, a_ij the coupling
+        weight of point j in frame i (0 if none): each of the 10 monomial coefficients of
+        G_jᵀ G_j (.linearize) is one product A·diag(f/v)·Aᵀ, all by one batched GEMM of
+        (m × c) by (c × 10m) per chunk of c points (20·m²·n flops, no per-pair products),
+        with c chosen so that the (B, 10·m, c) buffer stays within STRUCTURED_CHUNK_ENTRIES.
+        """
+        B, m, n = self.shape
+        pose_index, point_index = self.edges.pose_index, self.edges.point_index
+        batch = torch.arange(B, device=v_d.device)[:, None]
+        # (B, 10, n), contiguous so that the broadcast product below comes out contiguous.
+        F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
+        chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 10 * m)))
+        C = v_d.new_zeros(B, 10 * m, m)
+        weight = lin.coupling_weight
+        for start in range(0, n, chunk):
+            c = min(chunk, n - start)
+            if c == n:
+                inside, local = torch.ones_like(self.edges.active), point_index
+            else:
+                inside = (point_index >= start) & (point_index < start + c)
+                local = (point_index - start).clamp(0, c - 1)
+            A = v_d.new_zeros(B * m * c).index_add_(
+                0,
+                ((batch * m + pose_index) * c + local).reshape(-1),
+                torch.where(inside, weight, torch.zeros_like(weight)).reshape(-1),
+            )
+            A = A.reshape(B, m, c)
+            AF = (A[:, None] * F[:, :, None, start : start + c]).reshape(B, 10 * m, c)
+            C = C.baddbmm(AF, A.transpose(1, 2)) if c != n else torch.bmm(AF, A.transpose(1, 2))
+        blocks = blocks_from_monomials(C.reshape(B, 10, m, m).permute(0, 2, 3, 1))
+        return blocks.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+
+    def _factorize_full(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
+        """The full (6m + 3n)² system — small problems and cross-checks only. Assembled by
+        out-of-place ``index_put`` (no writes through views), so autograd can differentiate
+        through it (the unrolled backward)."""
+        B, m, n = self.shape
+        N = 6 * m + 3 * n
+        device = lin.coupling.device
+        U = damp(lin.pose_blocks, lam, self.damping)
+        V = damp(lin.point_blocks, lam, self.damping)
+        batch = torch.arange(B, device=device)
+
+        def block_indices(count: int, offset: int, size: int) -> tuple[Tensor, ...]:
+            """(batch, row, col) of the size × size diagonal blocks, (B, count, size, size)."""
+            a = torch.arange(size, device=device)
+            start = offset + size * torch.arange(count, device=device)[:, None, None]
+            rows = (start + a[:, None]).expand(count, size, size)
+            cols = (start + a[None, :]).expand(count, size, size)
+            return torch.broadcast_tensors(batch[:, None, None, None], rows[None], cols[None])
+
+        H = lin.coupling.new_zeros(B, N, N)
+        H = H.index_put(block_indices(m, 0, 6), U)
+        H = H.index_put(block_indices(n, 6 * m, 3), V)
+        pose_index, point_index = self.edges.pose_index, self.edges.point_index
+        rows = 6 * pose_index[..., None, None] + torch.arange(6, device=device)[:, None]
+        cols = 6 * m + 3 * point_index[..., None, None] + torch.arange(3, device=device)
+        rows, cols = torch.broadcast_tensors(rows, cols)  # (B, E', 6, 3)
+        bidx = batch[:, None, None, None].expand_as(rows)
+        H = H.index_put((bidx, rows, cols), lin.coupling, accumulate=True)
+        H = H.index_put((bidx, cols, rows), lin.coupling, accumulate=True)  # the mirror Wᵀ
+        if lin.terms is not None and lin.terms.pair_blocks.shape[1] > 0:
+            P = lin.terms.pair_blocks.reshape(-1, 6, 6)
+            pairs = P.new_zeros(B * m * m, 6, 6).index_add(0, self.term_keys, P)
+            pairs = pairs.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
+            H = H + torch.nn.functional.pad(pairs, (0, 3 * n, 0, 3 * n))
+        return Factorization(_DenseCholesky.of(H), None, None, self.shape)
+
+
+def choose_reduced_solver(
+    data: PointMapData,
+    reduced_solver: str,
+    dense_max_variables: int,
+    ordering: str = "mmd",
+    max_pairs: int = 10_000_000,
+    edges: CouplingEdges | None = None,
+) -> str:
+    """ "dense" or "sparse" for ``reduced_solver`` "auto" (explicit choices are returned).
+
+    Dense when 6m ≤ ``dense_max_variables``. Otherwise the block pattern of each problem's S
+    (pose pairs sharing a point, from the sparse product A Aᵀ of its m × n co-visibility,
+    and the terms' pose pairs) is ordered like the sparse path would and its symbolic
+    factorization gives the work W = Σ_j c_j² (c_j entries in block column j of the factor):
+    sparse when ``SPARSE_WORK_FACTOR``·W < m³ (the dense Cholesky's (6m)³/3 in the same
+    units, 216 W vs 72 m³) for every problem. Band-like patterns (trajectories, pose graphs)
+    go sparse; random or wide co-visibility, whose factor fills in, stays dense. When the
+    edge pairs sharing a point exceed ``max_pairs`` (forming them would be the sparse path's
+    cost too), dense.
+    """
+    if reduced_solver != "auto":
+        return reduced_solver
+    m, n = data.num_poses, data.num_points
+    if 6 * m <= dense_max_variables:
+        return "dense"
+    edges = coupling_edges(data) if edges is None else edges
+    B = edges.pose_index.shape[0]
+    batch = torch.arange(B, device=edges.pose_index.device)[:, None]
+    flat_point = (batch * n + edges.point_index)[edges.active]
+    counts = torch.bincount(flat_point, minlength=B * n).reshape(B, -1)
+    if int((counts * (counts + 1) // 2).sum()) > max_pairs:
+        return "dense"
+    keys = term_pair_keys(data).cpu()
+    pose, point, active = (
+        t.cpu().numpy() for t in (edges.pose_index, edges.point_index, edges.active)
+    )
+    for b in range(B):
+        A = scipy.sparse.csr_matrix(
+            (np.ones(int(active[b].sum())), (pose[b][active[b]], point[b][active[b]])),
+            shape=(m, n),
+        )
+        covisible = scipy.sparse.triu(A @ A.T, k=1).tocoo()
+        local = keys[b] % (m * m)
+        first = np.concatenate((covisible.row, (local // m).numpy()))
+        second = np.concatenate((covisible.col, (local % m).numpy()))
+        work = factorization_work(m, first, second, ordering)
+        if SPARSE_WORK_FACTOR * work >= float(m) ** 3:
+            return "dense"
+    return "sparse"
