@@ -8,7 +8,6 @@ float64 by default.
 from torchslam import (
     alignment,
     data,
-    icp,
     initialization,
     io,
     jacobians,
@@ -16,13 +15,14 @@ from torchslam import (
     manifold,
     metrics,
     posegraph,
+    registration,
     terms,
-    tracks,
 )
 from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.problem import PointMapData, PointMapProblem
+from torchslam.registration import icp, tracks
 from torchslam.solver import (
     ImplicitConfig,
     SolverConfig,
@@ -62,6 +62,7 @@ __all__ = [
     "manifold",
     "metrics",
     "posegraph",
+    "registration",
     "se3",
     "so3",
     "solve",

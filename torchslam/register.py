@@ -3,7 +3,7 @@
 The pipeline of the seed's sections 0 and 1, for m scans given in a *chain order* (successive
 scans must overlap):
 
-1. **Downsample** every scan on a voxel grid (:func:`torchslam.icp.voxel_downsample`).
+1. **Downsample** every scan on a voxel grid (:func:`torchslam.registration.icp.voxel_downsample`).
 2. **Pairwise ICP** between successive scans, T̂_(k,k+1) (scan k+1 → scan k), from
    ``hypotheses`` initial rotations spread over SO(3), refined coarse to fine with
    point-to-plane ICP (:func:`default_stages`). No prior pose is needed.
@@ -11,10 +11,10 @@ scans must overlap):
 4. **Overlapping pairs**: at the chained poses, every pair of scans of which each has at least
    ``min_overlap`` of its points within one voxel of the other is matched (this adds the loop
    closures that chaining ignores).
-5. **Point tracks**: mutual nearest neighbours within ``track_radius`` over those pairs, joined
-   into tracks (:func:`torchslam.tracks.build_tracks`); the world point X_0j starts at the
-   mean of its observations (seed eq. 0.2). Points on a scan's boundary (:func:`boundary_mask`)
-   make no tracks: range data are least reliable there.
+5. **Point tracks**: mutual nearest neighbours within ``track_radius`` over those pairs,
+   joined into tracks (:func:`torchslam.registration.tracks.build_tracks`); the world point
+   X_0j starts at the mean of its observations (seed eq. 0.2). Points on a scan's boundary
+   (:func:`boundary_mask`) make no tracks: range data are least reliable there.
 6. **Joint ICP-SLAM solve** over all poses and points (:class:`torchslam.PointMapProblem`,
    residual r_ij = X_ij − T_i0 X_0j of seed eq. 1.1, T_i0 = T_0i⁻¹; robust loss; the first
    scan's pose fixed as the gauge), with :func:`torchslam.solve`.
@@ -60,15 +60,16 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from torchslam import _checks, _plotting, icp
+from torchslam import _checks, _plotting
 from torchslam.io import _text
 from torchslam.io.ply import read_ply_points, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
 from torchslam.lie import convert, se3
 from torchslam.losses import CauchyLoss, HuberLoss
 from torchslam.problem import PointMapProblem
+from torchslam.registration import icp
+from torchslam.registration.tracks import Tracks, build_tracks
 from torchslam.solver import SolverConfig, Status, solve
-from torchslam.tracks import Tracks, build_tracks
 
 __all__ = [
     "ChainResult",
