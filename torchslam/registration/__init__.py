@@ -1,10 +1,10 @@
-"""Registration of point clouds: ICP front end, point tracks and the multiview pipeline.
+"""Registration of point clouds: neighbourhoods, ICP, point tracks and the multiview pipeline.
 
-Modules: :mod:`~torchslam.registration.icp` (voxel grids, normals, nearest neighbours,
-pairwise ICP, pose chaining) and :mod:`~torchslam.registration.tracks` (point tracks across
-scans).
+Modules: :mod:`~torchslam.registration.neighbors` (voxel grids, nearest neighbours, PCA
+normals), :mod:`~torchslam.registration.icp` (pairwise ICP, pose chaining) and
+:mod:`~torchslam.registration.tracks` (point tracks across scans).
 """
 
-from torchslam.registration import icp, tracks
+from torchslam.registration import icp, neighbors, tracks
 
-__all__ = ["icp", "tracks"]
+__all__ = ["icp", "neighbors", "tracks"]

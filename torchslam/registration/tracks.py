@@ -38,6 +38,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
+from torchslam.registration.neighbors import _host
 
 __all__ = ["Tracks", "build_tracks", "mutual_nearest_neighbors"]
 
@@ -124,21 +125,8 @@ def mutual_nearest_neighbors(first: Tensor, second: Tensor, radius: float) -> Te
     second = _checks.as_points(fn, "second", second, like=like, finite=False)
     _checks.check_same_kind(fn, first=first, second=second)
     bound = _checks.check_real(fn, "radius", radius, low=0.0, low_open=True, allow_inf=True)
-    a_to_b = _mutual(_numpy(fn, "first", first), _numpy(fn, "second", second), None, None, bound)
+    a_to_b = _mutual(_host(fn, "first", first), _host(fn, "second", second), None, None, bound)
     return torch.from_numpy(a_to_b).to(torch.int64)
-
-
-def _numpy(fn: str, name: str, x: Tensor) -> np.ndarray:
-    """Points as float64 numpy (N, 3); refuses NaN/Inf always (the KD-tree cannot hold them)."""
-    array = x.detach().cpu().numpy().astype(np.float64, copy=False)
-    bad = ~np.isfinite(array)
-    if bad.any():
-        first = np.unravel_index(int(np.flatnonzero(bad)[0]), array.shape)
-        raise ValueError(
-            f"{fn}: argument '{name}' contains {int(bad.sum())} non-finite value(s) (NaN or "
-            f"Inf), first at index {tuple(int(i) for i in first)}"
-        )
-    return array
 
 
 def _mutual(
@@ -239,7 +227,7 @@ def build_tracks(
     ]
     for i, cloud in enumerate(clouds):
         _checks.check_same_kind(fn, **{"clouds[0]": clouds[0], f"clouds[{i}]": cloud})
-        _numpy(fn, f"clouds[{i}]", cloud)  # finite (always: KD-trees on the host)
+        _host(fn, f"clouds[{i}]", cloud)  # finite (always: KD-trees on the host)
     _checks.check_tensor(fn, "poses", poses, (4, 4))
     if poses.shape != (m, 4, 4):
         raise ValueError(
@@ -262,7 +250,7 @@ def build_tracks(
     )
 
     dtype, device = clouds[0].dtype, clouds[0].device
-    world = [_numpy(fn, "poses", se3.act(poses[i], clouds[i])) for i in range(m)]
+    world = [_host(fn, "poses", se3.act(poses[i], clouds[i])) for i in range(m)]
     trees = [cKDTree(w) if len(w) else None for w in world]
     sizes = np.array([len(w) for w in world], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes)))
