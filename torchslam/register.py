@@ -60,7 +60,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from torchslam import _checks, _plotting
+from torchslam import _checks
+from torchslam.cli import plots as _plotting
 from torchslam.io import _text
 from torchslam.io.ply import read_ply_points, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
@@ -1185,7 +1186,7 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     joint (row 2: rotation in degrees, translation in mm).
 
     Raises:
-        torchslam._plotting.MatplotlibMissingError: matplotlib is not installed.
+        torchslam.cli.plots.MatplotlibMissingError: matplotlib is not installed.
     """
     plt = _plotting.require_pyplot()
 

@@ -9,15 +9,13 @@ printing one progress line per iteration, then prints a summary table and writes
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
-from torchslam import _plotting, initialization, metrics
+from torchslam import initialization, metrics
+from torchslam.cli import _stderr, float_range, int_range, plots
 from torchslam.data import make_scene
 from torchslam.problem import PointMapProblem
 from torchslam.solver import SolverConfig, solve
@@ -88,7 +86,6 @@ def validate(options: DemoOptions) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam demo`` (ranges: :data:`LIMITS`)."""
-    from torchslam.cli import float_range, int_range
 
     def limits(name: str) -> str:
         low, high = LIMITS[name]
@@ -154,10 +151,6 @@ def options_from_args(args: argparse.Namespace) -> DemoOptions:
     )
 
 
-def _stderr(line: str) -> None:
-    print(line, file=sys.stderr)
-
-
 def run_demo(
     options: DemoOptions,
     echo: Callable[[str], None] = print,
@@ -173,8 +166,8 @@ def run_demo(
     """
     validate(options)
     try:  # the figure's folder first: a bad --out is an error before the solve, not after it
-        _plotting.require_matplotlib()
-    except _plotting.MatplotlibMissingError:
+        plots.require_matplotlib()
+    except plots.MatplotlibMissingError:
         pass
     else:
         options.out.mkdir(parents=True, exist_ok=True)
@@ -244,49 +237,9 @@ def run_demo(
         f"status {result.status[0].name} ({result.reason[0]})"
     )
     try:
-        path = _figure(scene, init.poses, result, options.out)
-    except _plotting.MatplotlibMissingError as error:
+        path = plots.plot_demo(scene, init.poses, result, options.out)
+    except plots.MatplotlibMissingError as error:
         warn(f"figure skipped: {error}")
     else:
         echo(f"wrote {path}")
     return result
-
-
-def _figure(scene, initial_poses: torch.Tensor, result: SolveResult, out: Path) -> Path:
-    plt = _plotting.require_pyplot()
-    out.mkdir(parents=True, exist_ok=True)
-
-    def positions(T: torch.Tensor) -> torch.Tensor:  # sensor positions: translation of T_0i
-        R, t = T[0, :, :3, :3], T[0, :, :3, 3]
-        return -(R.transpose(-1, -2) @ t[..., None])[..., 0]
-
-    fig, (ax, ax_cost) = plt.subplots(1, 2, figsize=(11, 4.8))
-    # "Top view": the two world axes along which the true trajectory spreads most (frame 0
-    # is a sensor frame, so the ground plane need not be x-y).
-    gt = positions(scene.poses_gt)
-    a, b = sorted(torch.argsort(gt.std(dim=0), descending=True)[:2].tolist())
-    for T, label, style, width in (
-        (scene.poses_gt, "ground truth", "k-", 4.0),
-        (initial_poses, "initial (drifted odometry)", "r--", 1.5),
-        (result.poses, "optimized (LM)", "c-", 1.5),
-    ):
-        p = positions(T.detach()).numpy()
-        ax.plot(p[:, a], p[:, b], style, label=label, lw=width, alpha=0.9)
-    pts = scene.points_gt[0].numpy()
-    ax.scatter(pts[:, a], pts[:, b], s=1, c="0.8", zorder=0, label="points")
-    ax.set_aspect("equal")
-    ax.set_xlabel(f"{'xyz'[a]} (m)")
-    ax.set_ylabel(f"{'xyz'[b]} (m)")
-    ax.set_title("trajectory, top view")
-    ax.legend(loc="upper right", fontsize=8)
-    history = result.cost_history[0].numpy()
-    ax_cost.semilogy(range(len(history)), history, "o-")
-    ax_cost.set_xlabel("iteration")
-    ax_cost.set_ylabel("cost ½Σ‖r‖²")
-    ax_cost.set_title("Levenberg-Marquardt cost")
-    ax_cost.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    path = out / "demo.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

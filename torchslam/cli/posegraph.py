@@ -18,7 +18,7 @@ from typing import Literal
 
 import torch
 
-from torchslam import _plotting
+from torchslam.cli import int_range, plots
 from torchslam.io import g2o
 from torchslam.posegraph import initialization, objectives
 from torchslam.posegraph.graph import PoseGraph
@@ -67,15 +67,13 @@ class PoseGraphOptions:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam posegraph``."""
-    from torchslam.cli import int_range
-
     parser.add_argument("file", type=Path, help="the g2o file")
     parser.add_argument("--out", type=Path, help="write the optimized graph (g2o) here")
     parser.add_argument(
         "--plot",
         type=Path,
         help="write a figure (x-y, x-z, cost) here, e.g. trajectory.png (needs matplotlib: "
-        f"{_plotting.INSTALL_HINT})",
+        f"{plots.INSTALL_HINT})",
     )
     parser.add_argument(
         "--init",
@@ -138,7 +136,7 @@ def run_posegraph(
     if options.out is not None and options.out.is_dir():
         raise ValueError(f"--out {options.out} is a directory; give a file name (e.g. out.g2o)")
     if options.plot is not None:
-        _check_figure_format(options.plot)  # before the solve, not after it
+        plots.check_figure_format(options.plot)  # before the solve, not after it
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(options.threads)
     try:
@@ -187,66 +185,6 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
         echo(f"wrote {options.out}")
     if options.plot is not None:
         plot = options.plot if options.plot.suffix else options.plot.with_suffix(".png")
-        plot_trajectories(plot, poses, result, title=options.path.name)
+        plots.plot_trajectories(plot, poses, result, title=options.path.name)
         echo(f"wrote {plot}")
     return result
-
-
-def _check_figure_format(path: Path) -> None:
-    """matplotlib is there and can write ``path``'s format; ValueError otherwise."""
-    try:
-        _plotting.require_matplotlib()
-    except _plotting.MatplotlibMissingError as error:
-        raise ValueError(f"--plot needs matplotlib: {error}") from None
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    formats = FigureCanvasAgg.get_supported_filetypes()
-    suffix = path.suffix.lstrip(".").lower()
-    if suffix and suffix not in formats:
-        raise ValueError(
-            f"--plot: unknown figure format {path.suffix!r} (use one of {', '.join(formats)})"
-        )
-
-
-def plot_trajectories(
-    path: Path, initial: torch.Tensor, result: PoseGraphSolveResult, title: str = ""
-) -> None:
-    """Figure: vertex positions t_i before and after (x-y and x-z), and the cost per iteration.
-
-    Args:
-        path: the figure file (format from its suffix).
-        initial: initial poses, shape (N, 4, 4) (body → world; positions are the translations).
-        result: the solve result.
-        title: a title for the figure (e.g. the file name).
-
-    Raises:
-        torchslam._plotting.MatplotlibMissingError: matplotlib is not installed.
-    """
-    plt = _plotting.require_pyplot()
-
-    before = initial[:, :3, 3].detach().cpu().double().numpy()
-    after = result.poses[:, :3, 3].detach().cpu().double().numpy()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
-    for ax, (a, b) in zip(axes[:2], ((0, 1), (0, 2)), strict=True):
-        ax.plot(before[:, a], before[:, b], "r-", lw=0.6, alpha=0.6, label="initial")
-        ax.plot(after[:, a], after[:, b], "b-", lw=0.8, label="optimized (LM)")
-        ax.set_xlabel(f"{'xyz'[a]} (m)")
-        ax.set_ylabel(f"{'xyz'[b]} (m)")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(f"{'xyz'[a]}-{'xyz'[b]} projection")
-        ax.legend(loc="best", fontsize=8)
-    history = result.cost_history.numpy()
-    if (history > 0).all():
-        axes[2].semilogy(range(len(history)), history, "o-")
-    else:  # an exact graph reaches cost 0, which a log axis cannot show
-        axes[2].plot(range(len(history)), history, "o-")
-    axes[2].set_xlabel("iteration")
-    axes[2].set_ylabel("cost ½Σ rᵀΩr")
-    axes[2].set_title(f"Levenberg-Marquardt: {result.status.name}")
-    axes[2].grid(True, which="both", alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
