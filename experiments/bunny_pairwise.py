@@ -35,10 +35,10 @@ from pathlib import Path
 
 import torch
 
-from torchslam import register
 from torchslam.io.ply import read_ply_points
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, stack
 from torchslam.registration import icp
+from torchslam.registration import pipeline as register
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
 DEFAULT_ORDER = (

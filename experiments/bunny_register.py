@@ -32,8 +32,8 @@ from pathlib import Path
 import torch
 from bunny_pairwise import DEFAULT_DATA, DEFAULT_ORDER, REFERENCE_SCAN
 
-from torchslam import register
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, stack
+from torchslam.registration import pipeline as register
 
 TARGETS = {"rot_mean": 0.5, "trans_mean": 1.0, "rot_max": 2.0, "trans_max": 3.0}
 TIME_TARGET_S = 60.0

@@ -15,10 +15,10 @@ import pytest
 import torch
 
 from torchslam import cli, initialization
-from torchslam import register as reg
 from torchslam.data import make_loop_scene, make_scene
 from torchslam.io import g2o, ply, stanford
 from torchslam.lie import se3
+from torchslam.registration import pipeline as reg
 
 D = torch.float64
 

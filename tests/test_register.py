@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchslam import register
 from torchslam.io.ply import read_ply, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first
 from torchslam.lie import convert, se3, so3
 from torchslam.registration import icp
+from torchslam.registration import pipeline as register
 
 VOXEL = 0.04
 BUNNY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"

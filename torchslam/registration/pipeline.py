@@ -1424,7 +1424,7 @@ def _run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m torchslam.register``: the same as ``torchslam register``."""
+    """``python -m torchslam.registration.pipeline``: the same as ``torchslam register``."""
     from torchslam import cli
 
     return cli.main(["register", *(sys.argv[1:] if argv is None else argv)])
