@@ -372,8 +372,7 @@ def test_register_without_matplotlib_writes_the_rest(no_matplotlib, tmp_path, ca
 
 @pytest.mark.parametrize("sub", ["register", "bench"])
 def test_module_mains_share_the_contract(sub, capsys):
-    from torchslam.cli import bench
-    from torchslam.registration import pipeline as register
+    from torchslam.cli import bench, register
 
     main = register.main if sub == "register" else bench.main
     argv = ["a.ply", "b.ply", "--rounds", "-2"] if sub == "register" else ["--repeats", "-2"]

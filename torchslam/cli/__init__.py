@@ -179,7 +179,7 @@ def _parser() -> Parser:
     from torchslam.cli import bench as bench_command
     from torchslam.cli import demo as demo_command
     from torchslam.cli import posegraph as posegraph_command
-    from torchslam.registration import pipeline as register_command
+    from torchslam.cli import register as register_command
 
     demo_command.add_arguments(demo)
     add_common_options(demo)
@@ -308,9 +308,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             result = posegraph.run_posegraph(posegraph.options_from_args(args), echo=echo)
             return solve_exit_status([result.status], warn)
-        from torchslam.registration import pipeline
+        from torchslam.cli import register
 
-        return pipeline.run(args, echo=echo, warn=warn)
+        return register.run(args, echo=echo, warn=warn)
 
     with _Logging(verbose):
         return run_guarded(prog, body)

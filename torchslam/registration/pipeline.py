@@ -3,10 +3,12 @@
 The pipeline of the seed's sections 0 and 1, for m scans given in a *chain order* (successive
 scans must overlap):
 
-1. **Downsample** every scan on a voxel grid (:func:`torchslam.registration.icp.voxel_downsample`).
+1. **Downsample** every scan on a voxel grid
+   (:func:`torchslam.registration.neighbors.voxel_downsample`).
 2. **Pairwise ICP** between successive scans, T̂_(k,k+1) (scan k+1 → scan k), from
    ``hypotheses`` initial rotations spread over SO(3), refined coarse to fine with
-   point-to-plane ICP (:func:`default_stages`). No prior pose is needed.
+   point-to-plane ICP (:func:`~torchslam.registration.config.default_stages`). No prior pose
+   is needed.
 3. **Chaining** T̂_0i = T̂_01 T̂_12 ⋯ T̂_(i−1,i) (seed eq. 0.1): the initial poses.
 4. **Overlapping pairs**: at the chained poses, every pair of scans of which each has at least
    ``min_overlap`` of its points within one voxel of the other is matched (this adds the loop
@@ -33,27 +35,19 @@ point-map model; τ > 0 keeps every point determined). On synthetic scans with k
 All distances scale with one length, ``voxel_size`` (the finest pitch, 2 mm by default, for
 scans in metres about 0.15 m across, like the Stanford bunny).
 
-Pose file (:func:`write_poses` / :func:`read_poses`): one line per scan, in input order::
-
-    name tx ty tz qw qx qy qz
-
-T_0i = [[R(q), t], [0, 1]] maps the scan's coordinates into the frame of the reference scan
-(the first scan unless chosen otherwise): p_ref = R(q) p_scan + t; q is a unit Hamilton
-quaternion written scalar first; t in the scans' units. Lines starting with ``#`` are comments.
+Options: :mod:`torchslam.registration.config`; consistency checks and error tables:
+:mod:`torchslam.registration.report`; pose files: :mod:`torchslam.io.trajectories`; the command
+``torchslam register`` and its figure: :mod:`torchslam.cli.register`, :mod:`torchslam.cli.plots`.
 """
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import math
 import os
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
@@ -61,192 +55,36 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
-from torchslam.cli import plots as _plotting
-from torchslam.io import _text
-from torchslam.io.ply import read_ply_points, write_ply
-from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
-from torchslam.lie import convert, se3
-from torchslam.losses import CauchyLoss, HuberLoss
+from torchslam.io.ply import read_ply_points
+from torchslam.io.stanford import relative_to_first, scan_name
+from torchslam.lie import se3
 from torchslam.problem import PointMapProblem
 from torchslam.registration import icp
+from torchslam.registration.config import RegisterConfig, check_clouds, check_config, check_poses
+from torchslam.registration.report import alignment_residual
 from torchslam.registration.tracks import Tracks, build_tracks
 from torchslam.solver import SolverConfig, Status, solve
 
 __all__ = [
     "ChainResult",
+    "Progress",
     "RefineResult",
-    "RegisterConfig",
     "Registration",
     "RoundInfo",
-    "add_arguments",
-    "alignment_residual",
     "boundary_mask",
-    "default_stages",
-    "error_table",
     "information_matrices",
     "joint_cost",
     "load_scans",
-    "main",
-    "merged_cloud",
     "overlapping_pairs",
-    "plane_distances",
-    "plot_registration",
-    "read_poses",
     "refine",
     "register",
     "register_chain",
-    "run",
-    "scan_colors",
-    "write_poses",
 ]
 
 Progress = Callable[[str], None]
 
 
-# ----------------------------------------------------------------------------- configuration
-
-
-def default_stages(voxel_size: float = 0.002) -> tuple[icp.Stage, ...]:
-    """Coarse-to-fine pairwise schedule: 5×, 2.5× and 1× ``voxel_size`` (10, 5, 2 mm).
-
-    Point-to-plane at every level: from starts 30–60° off it converges in a few iterations,
-    where point-to-point creeps along the surface. Level 1 runs all hypotheses for 8
-    iterations and passes the best 8 on; level 2 the best one; level 3 refines it.
-
-    Raises:
-        TypeError, ValueError: ``voxel_size`` is not a finite number > 0.
-    """
-    v = _checks.check_real("default_stages", "voxel_size", voxel_size, low=0, low_open=True)
-    return (
-        icp.Stage(
-            5 * v,
-            icp.ICPConfig(
-                method="point_to_plane",
-                max_iterations=8,
-                max_distance=25 * v,
-                min_distance=5 * v,
-                trim_fraction=0.9,
-                relative_tolerance=1e-3,
-            ),
-            keep=8,
-        ),
-        icp.Stage(
-            2.5 * v,
-            icp.ICPConfig(
-                method="point_to_plane",
-                max_iterations=20,
-                max_distance=10 * v,
-                min_distance=2.5 * v,
-                trim_fraction=0.9,
-                relative_tolerance=1e-4,
-            ),
-            keep=1,
-        ),
-        icp.Stage(
-            v,
-            icp.ICPConfig(
-                method="point_to_plane",
-                max_iterations=40,
-                max_distance=5 * v,
-                min_distance=v,
-                trim_fraction=0.9,
-                relative_tolerance=1e-5,
-            ),
-        ),
-    )
-
-
-@dataclass(frozen=True)
-class RegisterConfig:
-    """Options of :func:`register`. Lengths are in the scans' units (metres for the bunny)."""
-
-    # finest voxel pitch: pairwise ICP's last level and the clouds the tracks are built on
-    voxel_size: float = 0.002
-    # initial rotations per chain pair (super-Fibonacci over SO(3), centroids aligned)
-    hypotheses: int = 128
-    # pairwise levels; None means default_stages(voxel_size)
-    stages: tuple[icp.Stage, ...] | None = None
-    # a pair is matched when each scan has ≥ this fraction of points within a voxel of the other
-    min_overlap: float = 0.1
-    # mutual-nearest-neighbour radius of the tracks, in units of voxel_size
-    track_radius: float = 1.5
-    # neighbours of the PCA normals of the track clouds (and of the boundary test)
-    normal_neighbors: int = 12
-    # points whose neighbour centroid is off by more than this × their mean neighbour
-    # distance lie on a scan's boundary and make no tracks (None keeps them)
-    boundary_threshold: float | None = 0.3
-    # τ of Ω = n nᵀ + τ (I − n nᵀ): weight of residuals along the surface (1 = isotropic)
-    tangent_weight: float = 0.01
-    # robust kernel of the joint solve, on s = rᵀ Ω r
-    loss: Literal["huber", "cauchy", "none"] = "huber"
-    # its scale, in units of voxel_size
-    loss_scale: float = 0.5
-    # association + joint-solve rounds at most (0: chaining only)
-    rounds: int = 4
-    # stop the rounds when no pose moves more than this (degrees) ...
-    rotation_tolerance_deg: float = 0.005
-    # ... and this (in units of voxel_size) between two rounds
-    translation_tolerance: float = 0.005
-    # Levenberg–Marquardt iterations per round at most
-    max_iterations: int = 30
-
-    def __post_init__(self) -> None:
-        fn, kind = "RegisterConfig", "field"
-        for name in ("voxel_size", "track_radius", "loss_scale"):
-            _checks.check_real(fn, name, getattr(self, name), low=0, low_open=True, kind=kind)
-        _checks.check_real(
-            fn, "tangent_weight", self.tangent_weight, low=0, high=1, low_open=True, kind=kind
-        )
-        _checks.check_real(fn, "min_overlap", self.min_overlap, low=0, high=1, kind=kind)
-        for name in ("rotation_tolerance_deg", "translation_tolerance"):
-            _checks.check_real(fn, name, getattr(self, name), low=0, kind=kind)
-        if self.boundary_threshold is not None:
-            _checks.check_real(
-                fn, "boundary_threshold", self.boundary_threshold, low=0, low_open=True, kind=kind
-            )
-        _checks.check_int(fn, "hypotheses", self.hypotheses, minimum=1, kind=kind)
-        _checks.check_int(fn, "normal_neighbors", self.normal_neighbors, minimum=3, kind=kind)
-        _checks.check_int(fn, "rounds", self.rounds, minimum=0, kind=kind)
-        _checks.check_int(fn, "max_iterations", self.max_iterations, minimum=0, kind=kind)
-        if not isinstance(self.loss, str) or self.loss not in ("huber", "cauchy", "none"):
-            raise ValueError(
-                f"{fn}: field 'loss' must be 'huber', 'cauchy' or 'none', "
-                f"got {_checks.describe(self.loss)}"
-            )
-        if self.stages is not None:
-            stages = self.stages
-            if isinstance(stages, (str, bytes)) or not isinstance(stages, Sequence):
-                raise TypeError(
-                    f"{fn}: field 'stages' must be None or a non-empty tuple of icp.Stage, "
-                    f"got {_checks.describe(stages)}"
-                )
-            for k, stage in enumerate(stages):
-                if not isinstance(stage, icp.Stage):
-                    raise TypeError(
-                        f"{fn}: field 'stages' must hold icp.Stage objects, got "
-                        f"{_checks.describe(stage)} at index {k}"
-                    )
-            if not stages:
-                raise ValueError(
-                    f"{fn}: field 'stages' must be None or a non-empty tuple of icp.Stage, got ()"
-                )
-            object.__setattr__(self, "stages", tuple(stages))
-
-    def pairwise_stages(self) -> tuple[icp.Stage, ...]:
-        """The pairwise ICP levels in force."""
-        return default_stages(self.voxel_size) if self.stages is None else self.stages
-
-    def robust_loss(self) -> object | None:
-        """The robust kernel object of the joint solve (None for plain least squares)."""
-        scale = self.loss_scale * self.voxel_size
-        if self.loss == "huber":
-            return HuberLoss(scale)
-        if self.loss == "cauchy":
-            return CauchyLoss(scale)
-        return None
-
-
-# ----------------------------------------------------------------------------- input / output
+# ----------------------------------------------------------------------------- input
 
 
 def load_scans(
@@ -304,158 +142,6 @@ def load_scans(
     return names, clouds
 
 
-def write_poses(
-    path: str | os.PathLike, names: Sequence[str], poses: Tensor, *, frame: str | None = None
-) -> None:
-    """Write poses T_0i in the documented text format (module docstring).
-
-    Args:
-        path: output file.
-        names: scan names, m of them (no white space).
-        poses: T_0i mapping each scan into the reference frame, shape (m, 4, 4).
-        frame: name of the reference scan, for the header comment.
-
-    Raises:
-        TypeError: a wrong type (``names`` must be a sequence of str, ``poses`` a float tensor
-            or numpy array).
-        ValueError: names that are empty, hold white space, start with ``#`` (a comment line
-            on reading) or repeat; ``poses`` of the wrong shape, non-finite or not rigid.
-    """
-    fn = "write_poses"
-    path = _checks.check_path(fn, path)
-    names = _checks.check_names(fn, names)
-    if not names:
-        raise ValueError(f"{fn}: argument 'names' must hold at least one name, got none")
-    if isinstance(poses, np.ndarray):
-        poses = torch.from_numpy(poses)
-    _checks.check_batched(
-        fn, "poses", poses, ("m",), (4, 4), sizes=(len(names),), against="'names'"
-    )
-    _checks.check_pose_matrix(fn, "poses", poses)
-    if frame is not None and (
-        not isinstance(frame, str) or not frame or "\n" in frame or "\r" in frame
-    ):
-        raise ValueError(
-            f"write_poses: argument 'frame' must be None or a one-line name, "
-            f"got {_checks.describe(frame)}"
-        )
-    q = convert.matrix_to_quaternion(poses[:, :3, :3].detach().to(torch.float64))
-    q = torch.where(q[:, :1] < 0, -q, q)  # qw ≥ 0
-    t = poses[:, :3, 3].detach().to(torch.float64)
-    lines = [
-        "# torchslam register poses: name tx ty tz qw qx qy qz",
-        f"# T_0i maps scan coordinates into the frame of {frame or (names[0] if names else '-')}: "
-        "p = R(q) p_scan + t (Hamilton quaternion, scalar first)",
-    ]
-    for name, ti, qi in zip(names, t.tolist(), q.tolist(), strict=True):
-        lines.append(" ".join([name, *(repr(float(x)) for x in (*ti, *qi))]))
-    Path(path).write_text("\n".join(lines) + "\n")
-
-
-def read_poses(
-    path: str | os.PathLike, *, dtype: torch.dtype = torch.float64
-) -> tuple[list[str], Tensor]:
-    """Read a pose file of :func:`write_poses`: ``(names, T_0i of shape (m, 4, 4))``.
-
-    Raises:
-        ValueError: a malformed line (field count, a number that is not a finite decimal, a
-            zero quaternion), a repeated name, no poses, bytes that are not UTF-8 text; the
-            message names the file and the line.
-        TypeError: ``path`` is not a str / os.PathLike or ``dtype`` not float32/float64.
-        OSError: the file cannot be read.
-    """
-    fn = "read_poses"
-    where = _checks.check_path(fn, path, is_file=True)
-    _checks.check_float_dtype(fn, dtype)
-    largest = torch.finfo(dtype).max
-    with open(where, "rb") as f:
-        lines = _text.decode_lines(f.read(), path, fn, "text pose file")
-    names: list[str] = []
-    rows: list[list[float]] = []
-    for number, raw in enumerate(lines, start=1):
-        words = raw.split()
-        if not words or words[0].startswith("#"):
-            continue
-        if len(words) != 8:
-            raise ValueError(
-                f"{fn}: {where}: line {number}: expected 'name tx ty tz qw qx qy qz', got "
-                f"{len(words)} fields"
-            )
-        try:
-            values = [_text.parse_finite_float(v) for v in words[1:]]
-            q = _text.unit_quaternion(values[3:], "quaternion (qw, qx, qy, qz)")
-        except _text.TokenError as error:
-            raise ValueError(f"{fn}: {where}: line {number}: {error}") from None
-        too_large = [v for v in values[:3] if abs(v) > largest]
-        if too_large:
-            raise ValueError(
-                f"{fn}: {where}: line {number}: translation {too_large[0]!r} overflows {dtype} "
-                f"(largest {largest:.4g}); read with dtype=torch.float64"
-            )
-        if words[0] in names:
-            raise ValueError(f"{fn}: {where}: line {number}: scan {words[0]!r} listed twice")
-        names.append(words[0])
-        rows.append([*values[:3], *q])
-    if not rows:
-        raise ValueError(f"{fn}: {where}: no poses")
-    values_t = torch.tensor(rows, dtype=dtype)
-    R = convert.quaternion_to_matrix(values_t[:, 3:])
-    return names, se3.from_rotation_translation(R, values_t[:, :3])
-
-
-# ----------------------------------------------------------------------------- argument checks
-
-
-def _check_clouds(
-    fn: str, clouds: object, *, minimum: int = 1, min_points: int = 1, name: str = "clouds"
-) -> list[Tensor]:
-    """A list of ≥ ``minimum`` float clouds (N_i, 3), N_i ≥ ``min_points``, of one dtype and
-    device, finite when value checks are active."""
-    if isinstance(clouds, Tensor) or not isinstance(clouds, Sequence) or isinstance(clouds, str):
-        raise TypeError(
-            f"{fn}: argument '{name}' must be a list of tensors of shape (N_i, 3), "
-            f"got {_checks.describe(clouds)}"
-        )
-    out = list(clouds)
-    if len(out) < minimum:
-        raise ValueError(f"{fn}: argument '{name}' must hold ≥ {minimum} clouds, got {len(out)}")
-    for k, cloud in enumerate(out):
-        if isinstance(cloud, np.ndarray):
-            raise TypeError(
-                f"{fn}: argument '{name}' must hold torch tensors, got a numpy array at index "
-                f"{k}; convert with torch.from_numpy"
-            )
-        _checks.check_batched(fn, f"{name}[{k}]", cloud, ("N",), (3,))
-        if cloud.shape[0] < min_points:
-            raise ValueError(
-                f"{fn}: argument '{name}[{k}]' must have ≥ {min_points} points, "
-                f"got shape {tuple(cloud.shape)}"
-            )
-        if k:
-            _checks.check_same_kind(fn, **{f"{name}[0]": out[0], f"{name}[{k}]": cloud})
-        _checks.check_finite(fn, f"{name}[{k}]", cloud)
-    return out
-
-
-def _check_poses(fn: str, poses: object, m: int, against: str = "'clouds'") -> Tensor:
-    """T_0i of shape (m, 4, 4), rigid when value checks are active."""
-    _checks.check_batched(fn, "poses", poses, ("m",), (4, 4), sizes=(m,), against=against)
-    assert isinstance(poses, Tensor)
-    _checks.check_pose_matrix(fn, "poses", poses)
-    return poses
-
-
-def _check_config(fn: str, config: object) -> RegisterConfig:
-    if config is None:
-        return RegisterConfig()
-    if not isinstance(config, RegisterConfig):
-        raise TypeError(
-            f"{fn}: argument 'config' must be a RegisterConfig or None, "
-            f"got {_checks.describe(config)}; build one with RegisterConfig(**options)"
-        )
-    return config
-
-
 # ----------------------------------------------------------------------------- pairwise chain
 
 
@@ -491,8 +177,8 @@ def register_chain(
         :class:`ChainResult`; poses in the frame of scan 0.
     """
     fn = "register_chain"
-    clouds = _check_clouds(fn, clouds, minimum=2, min_points=3)
-    config = _check_config(fn, config)
+    clouds = check_clouds(fn, clouds, minimum=2, min_points=3)
+    config = check_config(fn, config)
     if names is not None:
         names = _checks.check_names(fn, names, count=len(clouds), words=False)
     if progress is not None and not callable(progress):
@@ -543,9 +229,9 @@ def overlapping_pairs(
         fraction of scan i's points near scan k; diagonal 1).
     """
     fn = "overlapping_pairs"
-    clouds = _check_clouds(fn, clouds)
+    clouds = check_clouds(fn, clouds)
     m = len(clouds)
-    _check_poses(fn, poses, m)
+    check_poses(fn, poses, m)
     distance = _checks.check_real(fn, "distance", distance, low=0, low_open=True)
     _checks.check_real(fn, "min_overlap", min_overlap, low=0, high=1)
     world = [se3.act(poses[i], clouds[i]).detach().cpu().numpy() for i in range(m)]
@@ -732,9 +418,9 @@ def refine(
         :class:`RefineResult`, poses in the frame of scan 0 (its pose is the gauge).
     """
     fn = "refine"
-    clouds = _check_clouds(fn, clouds, minimum=2, min_points=2)
-    _check_poses(fn, poses, len(clouds))
-    config = _check_config(fn, config)
+    clouds = check_clouds(fn, clouds, minimum=2, min_points=2)
+    check_poses(fn, poses, len(clouds))
+    config = check_config(fn, config)
     if progress is not None and not callable(progress):
         raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if pairs is not None:
@@ -818,9 +504,9 @@ def joint_cost(
             f"{fn}: argument 'refinement' must be a RefineResult, "
             f"got {_checks.describe(refinement)}"
         )
-    config = _check_config(fn, config)
+    config = check_config(fn, config)
     m = len(refinement.track_clouds)
-    _check_poses(fn, poses, m, against="the refinement's scans")
+    check_poses(fn, poses, m, against="the refinement's scans")
     tracks = refinement.tracks
     if tracks is None:
         return math.nan
@@ -838,77 +524,6 @@ def _track_points(tracks: Tracks, poses: Tensor) -> Tensor:
     sums = moved.new_zeros(tracks.num_points, 3).index_add_(0, tracks.point_index, moved)
     counts = torch.bincount(tracks.point_index, minlength=tracks.num_points)
     return sums / counts.clamp_min(1).to(moved.dtype)[:, None]
-
-
-def plane_distances(
-    clouds: Sequence[Tensor],
-    poses: Tensor,
-    pairs: Sequence[tuple[int, int]],
-    distance: float,
-    normal_neighbors: int = 12,
-) -> np.ndarray:
-    """Signed point-to-plane distances between overlapping scans (see :func:`alignment_residual`).
-
-    Returns:
-        One distance per corresponding point, float64 array (K,), in the clouds' units.
-    """
-    return _plane_distances("plane_distances", clouds, poses, pairs, distance, normal_neighbors)
-
-
-def _plane_distances(
-    fn: str,
-    clouds: Sequence[Tensor],
-    poses: Tensor,
-    pairs: Sequence[tuple[int, int]],
-    distance: float,
-    normal_neighbors: int,
-) -> np.ndarray:
-    clouds = _check_clouds(fn, clouds, min_points=3)
-    m = len(clouds)
-    _check_poses(fn, poses, m)
-    poses = poses.to(clouds[0].dtype)
-    pairs = _checks.check_index_pairs(fn, pairs, m)
-    distance = _checks.check_real(fn, "distance", distance, low=0, low_open=True)
-    normal_neighbors = _checks.check_int(fn, "normal_neighbors", normal_neighbors, minimum=3)
-    normals = [icp.estimate_normals(c, min(normal_neighbors, len(c))) for c in clouds]
-    world = [se3.act(poses[i], clouds[i]).detach().cpu().numpy() for i in range(m)]
-    world_normals = [(normals[i] @ poses[i, :3, :3].T).detach().cpu().numpy() for i in range(m)]
-    trees = [cKDTree(w) for w in world]
-    out = [np.zeros(0)]
-    for a, b in pairs:
-        for i, k in ((a, b), (b, a)):
-            d, j = trees[k].query(world[i], distance_upper_bound=distance)
-            inside = np.isfinite(d)
-            offset = world[i][inside] - world[k][j[inside]]
-            out.append((offset * world_normals[k][j[inside]]).sum(-1))
-    return np.concatenate(out)
-
-
-def alignment_residual(
-    clouds: Sequence[Tensor],
-    poses: Tensor,
-    pairs: Sequence[tuple[int, int]],
-    distance: float,
-    normal_neighbors: int = 12,
-) -> float:
-    """RMS point-to-plane distance between overlapping scans: a consistency check of poses.
-
-    For every ordered pair (i, k) of ``pairs`` (both directions), each point of scan i whose
-    nearest point of scan k (world frame) lies within ``distance`` contributes its distance
-    to the tangent plane of scan k there (PCA normal). Independent of any point tracks.
-
-    Args:
-        clouds: m clouds in their scan frames, shapes (N_i, 3).
-        poses: T_0i, shape (m, 4, 4).
-        pairs: scan pairs.
-        distance: correspondence gate, > 0.
-        normal_neighbors: k of the PCA normals.
-
-    Returns:
-        The RMS distance, in the clouds' units (nan when no point corresponds).
-    """
-    d = _plane_distances("alignment_residual", clouds, poses, pairs, distance, normal_neighbors)
-    return float(np.sqrt(np.mean(d**2))) if len(d) else math.nan
 
 
 # ----------------------------------------------------------------------------- pipeline
@@ -970,13 +585,13 @@ def register(
     """
     fn = "register"
     names = _checks.check_names(fn, names)
-    clouds = _check_clouds(fn, clouds, minimum=2, min_points=3)
+    clouds = check_clouds(fn, clouds, minimum=2, min_points=3)
     if len(names) != len(clouds):
         raise ValueError(
             f"{fn}: argument 'names' must hold one name per cloud, got {len(names)} names for "
             f"{len(clouds)} clouds"
         )
-    config = _check_config(fn, config)
+    config = check_config(fn, config)
     if progress is not None and not callable(progress):
         raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if isinstance(frame, str):
@@ -1057,378 +672,3 @@ def _check_point_counts(
                     f"{size:g} voxel grid, need ≥ {need}; use a smaller voxel size "
                     "(--voxel-size)"
                 )
-
-
-# ----------------------------------------------------------------------------- reporting
-
-
-def error_table(
-    names: Sequence[str],
-    frame: int,
-    reference: Tensor,
-    columns: dict[str, Tensor],
-    include: Sequence[int] | None = None,
-) -> tuple[str, dict[str, dict[str, float]]]:
-    """Per-scan rotation (degrees) and translation (mm, for scans in metres) error table.
-
-    Args:
-        names: scan names, m.
-        frame: index of the scan whose frame both pose sets are compared in.
-        reference: reference T_0i (any common frame), shape (m, 4, 4).
-        columns: label → estimated T_0i (m, 4, 4).
-        include: scans in the mean/max rows; all but ``frame`` by default.
-
-    Returns:
-        ``(text, summary)`` with summary[label] = {"rot_mean", "rot_max", "trans_mean",
-        "trans_max"} (degrees, mm).
-    """
-    fn = "error_table"
-    names = _checks.check_names(fn, names, words=False)
-    m = len(names)
-    if m == 0:
-        raise ValueError(f"{fn}: argument 'names' must hold at least one name, got none")
-    frame = _checks.check_int(fn, "frame", frame, minimum=0, maximum=m - 1)
-    _check_poses(fn, reference, m, against="'names'")
-    if not isinstance(columns, dict) or not columns:
-        raise TypeError(
-            f"{fn}: argument 'columns' must be a non-empty dict label → poses (m, 4, 4), "
-            f"got {_checks.describe(columns)}"
-        )
-    for label, poses in columns.items():
-        if not isinstance(label, str):
-            raise TypeError(f"{fn}: argument 'columns' must have str labels, got {label!r}")
-        _checks.check_batched(fn, f"columns[{label!r}]", poses, ("m",), (4, 4), sizes=(m,))
-        _checks.check_pose_matrix(fn, f"columns[{label!r}]", poses)
-    if include is None:
-        include = [i for i in range(m) if i != frame]
-    else:
-        if isinstance(include, (str, Tensor)) or not isinstance(include, Sequence):
-            raise TypeError(
-                f"{fn}: argument 'include' must be None or a list of scan indices, "
-                f"got {_checks.describe(include)}"
-            )
-        include = [
-            _checks.check_int(fn, f"include[{k}]", i, minimum=0, maximum=m - 1)
-            for k, i in enumerate(include)
-        ]
-    if not include:
-        raise ValueError(f"{fn}: no scans to summarize ('include' is empty or only 'frame')")
-    errors = {}
-    for label, poses in columns.items():
-        rotation, translation = pose_errors(poses.to(reference.dtype), reference, frame)
-        errors[label] = (rotation, translation * 1000)
-    head = f"{'scan':<10}" + "".join(
-        f" {label + ' rot°':>14} {label + ' mm':>12}" for label in errors
-    )
-    lines = [head]
-    for i, name in enumerate(names):
-        mark = "" if i in include or i == frame else " *"
-        row = f"{name + mark:<10}"
-        for rotation, translation in errors.values():
-            row += f" {float(rotation[i]):14.3f} {float(translation[i]):12.3f}"
-        lines.append(row)
-    summary: dict[str, dict[str, float]] = {}
-    index = torch.tensor(include, dtype=torch.int64)
-    for key in ("mean", "max"):
-        row = f"{key:<10}"
-        for label, (rotation, translation) in errors.items():
-            r, t = rotation[index], translation[index]
-            r_value = float(r.mean() if key == "mean" else r.max())
-            t_value = float(t.mean() if key == "mean" else t.max())
-            summary.setdefault(label, {})[f"rot_{key}"] = r_value
-            summary[label][f"trans_{key}"] = t_value
-            row += f" {r_value:14.3f} {t_value:12.3f}"
-        lines.append(row)
-    return "\n".join(lines), summary
-
-
-_PALETTE = np.array(
-    [
-        [31, 119, 180],
-        [255, 127, 14],
-        [44, 160, 44],
-        [214, 39, 40],
-        [148, 103, 189],
-        [140, 86, 75],
-        [227, 119, 194],
-        [127, 127, 127],
-        [188, 189, 34],
-        [23, 190, 207],
-    ],
-    dtype=np.uint8,
-)
-
-
-def scan_colors(count: int) -> np.ndarray:
-    """One RGB colour (uint8) per scan, shape (count, 3) (matplotlib's tab10, repeating)."""
-    count = _checks.check_int("scan_colors", "count", count, minimum=0)
-    return _PALETTE[np.arange(count) % len(_PALETTE)]
-
-
-def merged_cloud(clouds: Sequence[Tensor], poses: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """All clouds moved into the common frame, with one colour per scan: (N, 3), (N, 3) uint8."""
-    clouds = _check_clouds("merged_cloud", clouds)
-    poses = _check_poses("merged_cloud", poses, len(clouds)).to(clouds[0].dtype)
-    colors = scan_colors(len(clouds))
-    points = [se3.act(poses[i], c).detach().cpu().numpy() for i, c in enumerate(clouds)]
-    rgb = [np.repeat(colors[i][None], len(p), axis=0) for i, p in enumerate(points)]
-    return np.concatenate(points), np.concatenate(rgb)
-
-
-def plot_registration(registration: Registration, path: str | os.PathLike) -> None:
-    """Figure of a registration: chained pairwise ICP (row 1) vs joint ICP-SLAM (row 2).
-
-    Columns: top view (x, z) and side view (x, y) of the merged downsampled cloud, coloured by
-    scan, in the axes of the reference scan (mm for scans in metres); a section, the slab
-    |z − z_mid| < one voxel through the middle of the cloud, where misregistration shows as
-    doubled contours; and two diagnostics: the histogram of point-to-plane distances between
-    overlapping scans (chained and joint, row 1) and the change of every pose from chained to
-    joint (row 2: rotation in degrees, translation in mm).
-
-    Raises:
-        torchslam.cli.plots.MatplotlibMissingError: matplotlib is not installed.
-    """
-    plt = _plotting.require_pyplot()
-
-    reg = registration
-    colors = scan_colors(len(reg.names)) / 255.0
-    scale = 1000.0  # metres → mm
-    voxel = reg.voxel_size * scale
-    rows = (
-        ("chained pairwise ICP", reg.chained, reg.residual_chained),
-        ("joint ICP-SLAM", reg.poses, reg.residual_joint),
-    )
-    worlds = [
-        [se3.act(poses[i], c).detach().cpu().numpy() * scale for i, c in enumerate(reg.clouds)]
-        for _, poses, _ in rows
-    ]
-    z_mid = float(np.median(np.concatenate(worlds[1])[:, 2]))
-    fig, axes = plt.subplots(2, 4, figsize=(20, 9.5), gridspec_kw={"width_ratios": [1, 1, 1, 0.9]})
-    for row, ((title, _, residual), world) in enumerate(zip(rows, worlds, strict=True)):
-        inside = [np.abs(p[:, 2] - z_mid) < voxel for p in world]
-        panels = (
-            ("top view", [(p[:, 0], p[:, 2]) for p in world], ("x", "z"), 0.25),
-            ("side view", [(p[:, 0], p[:, 1]) for p in world], ("x", "y"), 0.25),
-            (
-                f"section |z − {z_mid:.0f}| < {voxel:g} mm",
-                [(p[k, 0], p[k, 1]) for p, k in zip(world, inside, strict=True)],
-                ("x", "y"),
-                2.5,
-            ),
-        )
-        for col, (name, series, (u, v), size) in enumerate(panels):
-            ax = axes[row, col]
-            for i, (x, y) in enumerate(series):
-                ax.scatter(x, y, s=size, color=colors[i], linewidths=0, alpha=0.8)
-            ax.set_aspect("equal")
-            ax.set_xlabel(f"{u} (mm)")
-            ax.set_ylabel(f"{v} (mm)")
-            ax.set_title(f"{title}: {name}", fontsize=11)
-        axes[row, 0].annotate(
-            f"point-to-plane RMS between overlapping scans {residual * scale:.3f} mm",
-            xy=(0.02, 0.02),
-            xycoords="axes fraction",
-            fontsize=9,
-        )
-
-    ax = axes[0, 3]
-    pairs = reg.refinement.pairs
-    bins = np.linspace(-3 * voxel / 4, 3 * voxel / 4, 61)
-    for (title, poses, residual), color in zip(rows, ("tab:gray", "tab:blue"), strict=True):
-        d = plane_distances(reg.refinement.track_clouds, poses, pairs, reg.voxel_size) * scale
-        ax.hist(
-            d,
-            bins=bins,
-            histtype="step",
-            linewidth=1.5,
-            color=color,
-            label=f"{title} (RMS {residual * scale:.3f} mm)",
-        )
-    ax.set_xlabel("point-to-plane distance (mm)")
-    ax.set_ylabel("points")
-    ax.set_title("consistency of the overlaps", fontsize=11)
-    ax.legend(fontsize=8, loc="upper left")
-
-    ax = axes[1, 3]
-    change = se3.compose(se3.inverse(reg.chained), reg.poses)
-    rotation = torch.rad2deg(torch.linalg.vector_norm(se3.log(change)[:, :3], dim=-1))
-    translation = torch.linalg.vector_norm(reg.poses[:, :3, 3] - reg.chained[:, :3, 3], dim=-1)
-    x = np.arange(len(reg.names))
-    ax.bar(x - 0.2, rotation.numpy(), 0.4, color="tab:blue", label="rotation (°)")
-    ax.bar(x + 0.2, translation.numpy() * scale, 0.4, color="tab:orange", label="translation (mm)")
-    ax.set_xticks(x, reg.names, rotation=60, fontsize=8)
-    ax.set_title(f"pose change chained → joint (frame {reg.names[reg.frame]})", fontsize=11)
-    ax.legend(fontsize=8)
-
-    handles = [
-        plt.Line2D([], [], marker="o", linestyle="", color=colors[i], label=n)
-        for i, n in enumerate(reg.names)
-    ]
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), frameon=False)
-    fig.suptitle(
-        f"{len(reg.names)} scans ({voxel:g} mm voxels) in the frame of "
-        f"{reg.names[reg.frame]}: chained pairwise ICP (top) vs joint ICP-SLAM (bottom)"
-    )
-    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-# ----------------------------------------------------------------------------- command line
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``torchslam register``."""
-    from torchslam.cli import float_range, int_range
-
-    parser.add_argument("scans", nargs="+", type=Path, help="PLY scans in chain order (≥ 2)")
-    parser.add_argument(
-        "--reference", type=Path, default=None, help="Stanford .conf alignment to compare with"
-    )
-    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
-    parser.add_argument(
-        "--frame", default=None, help="scan whose frame the poses are in (default: the first)"
-    )
-    parser.add_argument(
-        "--voxel-size",
-        type=float_range(0.0, 1e6, low_open=True),
-        default=0.002,
-        help="finest voxel pitch, scan units (0, 1e6] (0.002)",
-    )
-    parser.add_argument(
-        "--hypotheses", type=int_range(1, 10_000), default=128, help="starts per pair (128)"
-    )
-    parser.add_argument(
-        "--rounds", type=int_range(0, 100), default=4, help="joint rounds at most [0, 100] (4)"
-    )
-    parser.add_argument(
-        "--threads", type=int_range(1, 1024), default=1, help="torch threads [1, 1024] (1)"
-    )
-
-
-def _stderr(line: str) -> None:
-    print(line, file=sys.stderr)
-
-
-def run(
-    args: argparse.Namespace,
-    echo: Callable[[str], None] = print,
-    warn: Callable[[str], None] = _stderr,
-) -> int:
-    """Run ``torchslam register``: progress lines, poses, merged PLY, PNG, optional table.
-
-    Returns the exit status: 0, or 1 when a joint solve ended ``NON_FINITE`` or
-    ``LINEAR_SOLVE_FAILED`` (outputs are still written; :mod:`torchslam.cli`). Without
-    matplotlib the figure is skipped with one ``figure skipped: …`` line through ``warn``.
-
-    Raises:
-        ValueError: bad option values or input files. OSError: unreadable or unwritable files.
-    """
-    if args.threads < 1:
-        raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
-    if not (args.voxel_size > 0 and math.isfinite(args.voxel_size)):
-        raise ValueError(f"--voxel-size must be > 0, got {args.voxel_size}")
-    if args.hypotheses < 1:
-        raise ValueError(f"--hypotheses must be ≥ 1, got {args.hypotheses}")
-    if args.rounds < 0:
-        raise ValueError(f"--rounds must be ≥ 0, got {args.rounds}")
-    if len(args.scans) < 2:
-        raise ValueError(f"need at least 2 scans, got {len(args.scans)}")
-    expected = [scan_name(p) for p in args.scans]
-    frame = expected[0] if args.frame is None else args.frame
-    if frame not in expected:
-        raise ValueError(f"--frame {frame!r} is not among the scans ({', '.join(expected)})")
-    if args.out.exists() and not args.out.is_dir():
-        raise ValueError(f"--out {args.out} exists and is not a directory")
-    config = RegisterConfig(
-        voxel_size=args.voxel_size, hypotheses=args.hypotheses, rounds=args.rounds
-    )
-    threads = torch.get_num_threads()
-    torch.set_num_threads(args.threads)
-    try:
-        return _run(args, config, expected, frame, echo, warn)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _run(
-    args: argparse.Namespace,
-    config: RegisterConfig,
-    expected: list[str],
-    frame: str,
-    echo: Callable[[str], None],
-    warn: Callable[[str], None],
-) -> int:
-    start = time.perf_counter()
-    reference = None
-    if args.reference is not None:
-        if not args.reference.is_file():
-            raise FileNotFoundError(f"no such reference file: {args.reference}")
-        reference = read_conf(args.reference)
-        missing = [n for n in expected if n not in reference]
-        if missing:
-            raise ValueError(f"{args.reference}: no pose for scan(s) {', '.join(missing)}")
-    echo(f"[1/5] reading {len(args.scans)} scans …")
-    names, clouds = load_scans(args.scans)
-    echo(f"      {', '.join(f'{n} ({len(c)})' for n, c in zip(names, clouds, strict=True))}")
-    stage = iter(("[2/5]", "[3/5]", "[4/5]"))
-
-    def progress(line: str) -> None:
-        prefix = "     " if line.startswith(" ") else next(stage, "     ")
-        echo(f"{prefix} {line}")
-
-    registration = register(names, clouds, config, frame=frame, progress=progress)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    echo(f"[5/5] writing {out} …")
-    write_poses(out / "poses.txt", names, registration.poses, frame=frame)
-    write_poses(out / "poses_chained.txt", names, registration.chained, frame=frame)
-    points, colors = merged_cloud(registration.clouds, registration.poses)
-    legend = [
-        f"scan {n} rgb {' '.join(map(str, c))}"
-        for n, c in zip(names, scan_colors(len(names)), strict=True)
-    ]
-    write_ply(out / "merged.ply", points, colors, coordinate_type="float", comments=legend)
-    written = ["poses.txt", "poses_chained.txt", f"merged.ply ({len(points)} points)"]
-    try:
-        plot_registration(registration, out / "registration.png")
-    except _plotting.MatplotlibMissingError as error:
-        warn(f"figure skipped: {error}")
-    else:
-        written.append("registration.png")
-    echo(f"      {', '.join(written)}")
-    echo(
-        f"point-to-plane RMS between overlapping scans: chained "
-        f"{registration.residual_chained:.4g} → joint {registration.residual_joint:.4g}"
-    )
-    if reference is not None:
-        reference_poses = stack(reference, names)
-        text, _ = error_table(
-            names,
-            registration.frame,
-            reference_poses,
-            {"chain": registration.chained, "joint": registration.poses},
-        )
-        echo(f"errors vs {args.reference} in the frame of {frame} (mm assumes metres):")
-        echo(text)
-    echo(f"total {time.perf_counter() - start:.1f} s")
-    for pair, result in zip(
-        itertools.pairwise(names), registration.chain.pair_results, strict=True
-    ):
-        if int(result.status) == icp.ICPStatus.TOO_FEW_CORRESPONDENCES:
-            warn(f"warning: pairwise ICP {pair[0]} ← {pair[1]}: {result.reason}")
-    from torchslam.cli import solve_exit_status
-
-    statuses = [info.status for info in registration.refinement.rounds]
-    return solve_exit_status(statuses, warn, "a joint solve")
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m torchslam.registration.pipeline``: the same as ``torchslam register``."""
-    from torchslam import cli
-
-    return cli.main(["register", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
