@@ -8,6 +8,7 @@ float64 by default.
 from torchslam import (
     alignment,
     data,
+    icp,  # deprecated alias of registration.icp (a shim module)
     initialization,
     io,
     jacobians,
@@ -17,12 +18,12 @@ from torchslam import (
     posegraph,
     registration,
     terms,
+    tracks,  # deprecated alias of registration.tracks (a shim module)
 )
 from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.problem import PointMapData, PointMapProblem
-from torchslam.registration import icp, tracks
 from torchslam.solver import (
     ImplicitConfig,
     SolverConfig,

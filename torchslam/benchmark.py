@@ -25,6 +25,7 @@ import time
 import torch
 
 import torchslam as ts
+from torchslam import _deprecated
 from torchslam.lie import se3
 
 REPEATS = {"S": 20, "M": 10, "L": 3, "O": 5, "BATCH": 5}
@@ -192,3 +193,19 @@ def peak_memory_subprocess(case: str) -> float:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return int(out.stdout.split()[-1]) / 2**20
+
+
+# The command itself moved to torchslam.cli.bench; its names are forwarded for one release.
+__getattr__ = _deprecated.moved(
+    __name__,
+    {
+        "add_arguments": "torchslam.cli.bench",
+        "main": "torchslam.cli.bench",
+        "run": "torchslam.cli.bench",
+    },
+)
+
+if __name__ == "__main__":
+    from torchslam.cli.bench import main
+
+    sys.exit(main())
