@@ -13,82 +13,43 @@ import pytest
 
 import torchslam
 
-# old module → {name: new module}
+# old module → {new module: the names that moved there} (the old modules' public names)
 MOVED = {
     "torchslam.icp": {
-        name: "torchslam.registration.icp"
-        for name in (
-            "ICPConfig",
-            "ICPResult",
-            "ICPStatus",
-            "Stage",
-            "icp",
-            "icp_batch",
-            "icp_multistart",
-            "initial_guesses",
-            "register_coarse_to_fine",
-            "rotations_about_axis",
-            "rotations_uniform",
-            "chain_poses",
-            "voxel_downsample",
-            "nearest_neighbors",
-            "estimate_normals",
-        )
+        "torchslam.registration.icp": "ICPConfig ICPResult ICPStatus Stage chain_poses icp "
+        "icp_batch icp_multistart initial_guesses register_coarse_to_fine rotations_about_axis "
+        "rotations_uniform voxel_downsample nearest_neighbors estimate_normals"
     },
     "torchslam.tracks": {
-        name: "torchslam.registration.tracks"
-        for name in ("Tracks", "build_tracks", "mutual_nearest_neighbors")
+        "torchslam.registration.tracks": "Tracks build_tracks mutual_nearest_neighbors"
     },
     "torchslam.register": {
-        **dict.fromkeys(("RegisterConfig", "default_stages"), "torchslam.registration.config"),
-        **dict.fromkeys(
-            (
-                "ChainResult",
-                "RefineResult",
-                "Registration",
-                "RoundInfo",
-                "boundary_mask",
-                "information_matrices",
-                "joint_cost",
-                "load_scans",
-                "overlapping_pairs",
-                "refine",
-                "register",
-                "register_chain",
-            ),
-            "torchslam.registration.pipeline",
-        ),
-        **dict.fromkeys(
-            ("alignment_residual", "error_table", "plane_distances"),
-            "torchslam.registration.report",
-        ),
-        **dict.fromkeys(("read_poses", "write_poses"), "torchslam.io.trajectories"),
-        **dict.fromkeys(("add_arguments", "main", "run"), "torchslam.cli.register"),
-        **dict.fromkeys(
-            ("merged_cloud", "plot_registration", "scan_colors"), "torchslam.cli.plots"
-        ),
+        "torchslam.registration.config": "RegisterConfig default_stages",
+        "torchslam.registration.pipeline": "ChainResult RefineResult Registration RoundInfo "
+        "boundary_mask information_matrices joint_cost load_scans overlapping_pairs refine "
+        "register register_chain",
+        "torchslam.registration.report": "alignment_residual error_table plane_distances",
+        "torchslam.io.trajectories": "read_poses write_poses",
+        "torchslam.cli.register": "add_arguments main run",
+        "torchslam.cli.plots": "merged_cloud plot_registration scan_colors",
     },
     "torchslam.posegraph.command": {
-        **dict.fromkeys(
-            (
-                "INITIALIZATIONS",
-                "PoseGraphOptions",
-                "add_arguments",
-                "initial_poses",
-                "options_from_args",
-                "run_posegraph",
-            ),
-            "torchslam.cli.posegraph",
-        ),
-        "plot_trajectories": "torchslam.cli.plots",
+        "torchslam.cli.posegraph": "INITIALIZATIONS PoseGraphOptions add_arguments initial_poses "
+        "options_from_args run_posegraph",
+        "torchslam.cli.plots": "plot_trajectories",
     },
-    "torchslam.demo": dict.fromkeys(
-        ("DemoOptions", "LIMITS", "add_arguments", "options_from_args", "run_demo", "validate"),
-        "torchslam.cli.demo",
-    ),
-    "torchslam.benchmark": dict.fromkeys(("add_arguments", "main", "run"), "torchslam.cli.bench"),
+    "torchslam.demo": {
+        "torchslam.cli.demo": "DemoOptions LIMITS MAX_SCENE_SIZE add_arguments options_from_args "
+        "run_demo validate"
+    },
+    "torchslam.benchmark": {"torchslam.cli.bench": "add_arguments main run"},
 }
-CASES = [(old, name, new) for old, names in MOVED.items() for name, new in names.items()]
+CASES = [
+    (old, name, new)
+    for old, homes in MOVED.items()
+    for new, names in homes.items()
+    for name in names.split()
+]
 
 
 @pytest.mark.parametrize(("old", "name", "new"), CASES)
@@ -104,7 +65,7 @@ def test_importing_an_old_path_does_not_warn_and_from_import_does(old):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         module = importlib.import_module(old)
-    name = next(iter(MOVED[old]))
+    name = next(name for case_old, name, _ in CASES if case_old == old)
     with pytest.warns(DeprecationWarning, match=f"{old}.{name}"):
         exec(f"from {old} import {name}", {})
     with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):

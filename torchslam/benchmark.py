@@ -196,14 +196,7 @@ def peak_memory_subprocess(case: str) -> float:
 
 
 # The command itself moved to torchslam.cli.bench; its names are forwarded for one release.
-__getattr__ = _deprecated.moved(
-    __name__,
-    {
-        "add_arguments": "torchslam.cli.bench",
-        "main": "torchslam.cli.bench",
-        "run": "torchslam.cli.bench",
-    },
-)
+__getattr__ = _deprecated.moved(__name__, {"torchslam.cli.bench": ("add_arguments", "main", "run")})
 
 if __name__ == "__main__":
     from torchslam.cli.bench import main

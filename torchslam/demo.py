@@ -1,18 +1,6 @@
-"""Deprecated: ``torchslam.demo`` is now :mod:`torchslam.cli.demo`; removed in the next release.
-
-Reading a name here returns the same object with a ``DeprecationWarning``.
-"""
+"""Deprecated alias of :mod:`torchslam.cli.demo` (``torchslam demo``), removed in the next
+release; its names warn when read."""
 
 from torchslam import _deprecated
 
-_MOVED = {
-    "DemoOptions": "torchslam.cli.demo",
-    "LIMITS": "torchslam.cli.demo",
-    "MAX_SCENE_SIZE": "torchslam.cli.demo",
-    "add_arguments": "torchslam.cli.demo",
-    "options_from_args": "torchslam.cli.demo",
-    "run_demo": "torchslam.cli.demo",
-    "validate": "torchslam.cli.demo",
-}
-__all__ = sorted(_MOVED)
-__getattr__ = _deprecated.moved(__name__, _MOVED)
+__getattr__ = _deprecated.moved(__name__, {"torchslam.cli.demo": None})

@@ -21,7 +21,15 @@ from torchslam.problem import PointMapProblem
 from torchslam.solver import SolverConfig, solve
 from torchslam.solver.result import SolveResult
 
-__all__ = ["LIMITS", "DemoOptions", "add_arguments", "options_from_args", "run_demo", "validate"]
+__all__ = [
+    "LIMITS",
+    "MAX_SCENE_SIZE",
+    "DemoOptions",
+    "add_arguments",
+    "options_from_args",
+    "run_demo",
+    "validate",
+]
 
 # Accepted ranges of the options (inclusive; --visible-fraction excludes 0). The scene is a
 # loop of radius ~4 m, so noise and drift beyond these bounds make no sense; the sizes keep
