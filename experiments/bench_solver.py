@@ -1,9 +1,9 @@
-"""Solver benchmark (issue 4): the same as ``torchslam bench``; see torchslam/benchmark.py.
+"""Solver benchmark (issue 4): the same as ``torchslam bench``; see torchslam/cli/bench.py.
 
 .venv/bin/python experiments/bench_solver.py [--cases S M L O BATCH] [--repeats N] [--quick]
 """
 
-from torchslam.benchmark import main
+from torchslam.cli.bench import main
 
 if __name__ == "__main__":
     main()

@@ -35,9 +35,10 @@ from pathlib import Path
 
 import torch
 
-from torchslam import icp, register
+from torchslam import registration
 from torchslam.io.ply import read_ply_points
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, stack
+from torchslam.registration import icp
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
 DEFAULT_ORDER = (
@@ -63,8 +64,8 @@ REFERENCE_SCAN = "bun000"
 
 
 def default_stages() -> tuple[icp.Stage, ...]:
-    """Coarse-to-fine schedule in metres: 10, 5, 2 mm (``torchslam.register.default_stages``)."""
-    return register.default_stages(0.002)
+    """Coarse-to-fine schedule in metres: 10, 5, 2 mm (``registration.default_stages``)."""
+    return registration.default_stages(0.002)
 
 
 @dataclass
@@ -98,8 +99,8 @@ def run(
     start = time.perf_counter()
     raw = {n: read_ply_points(data / f"{n}.ply") for n in names}
     load_seconds = time.perf_counter() - start
-    config = register.RegisterConfig(hypotheses=hypotheses, stages=stages)
-    chain = register.register_chain([raw[n] for n in names], config)
+    config = registration.RegisterConfig(hypotheses=hypotheses, stages=stages)
+    chain = registration.register_chain([raw[n] for n in names], config)
     relative_t, chained = chain.relative, chain.poses  # chained: into the frame of names[0]
     pair_results, pair_seconds = chain.pair_results, chain.pair_seconds
     reference_index = list(names).index(REFERENCE_SCAN) if REFERENCE_SCAN in names else 0

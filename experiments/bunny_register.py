@@ -1,10 +1,11 @@
 """Multiview registration of the 10 Stanford bunny scans: chaining vs joint ICP-SLAM vs bun.conf.
 
-Runs :func:`torchslam.register.register` (pairwise ICP along the chain of bunny_pairwise.py,
-then rounds of point tracks + the joint point-map least-squares solve) on the 10 scans, and
-prints the per-scan rotation / translation errors of the chained and of the jointly optimized
-poses against bun.conf, both in the frame of bun000, with mean and max over the 9 other scans,
-the issue's targets, and the total wall time of the pipeline (reading the PLY files included).
+Runs :func:`torchslam.registration.register` (pairwise ICP along the chain of
+bunny_pairwise.py, then rounds of point tracks + the joint point-map least-squares solve) on the
+10 scans, and prints the per-scan rotation / translation errors of the chained and of the jointly
+optimized poses against bun.conf, both in the frame of bun000, with mean and max over the 9
+other scans, the issue's targets, and the total wall time of the pipeline (reading the PLY files
+included).
 
 bun.conf is itself a 1990s registration, so the script also measures how consistent each pose
 set is, without any reference:
@@ -32,8 +33,10 @@ from pathlib import Path
 import torch
 from bunny_pairwise import DEFAULT_DATA, DEFAULT_ORDER, REFERENCE_SCAN
 
-from torchslam import register
+from torchslam import registration
+from torchslam.cli import plots
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, stack
+from torchslam.io.trajectories import write_poses
 
 TARGETS = {"rot_mean": 0.5, "trans_mean": 1.0, "rot_max": 2.0, "trans_max": 3.0}
 TIME_TARGET_S = 60.0
@@ -62,11 +65,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     torch.set_num_threads(args.threads)
     names = list(DEFAULT_ORDER)
-    config = register.RegisterConfig()
+    config = registration.RegisterConfig()
 
     wall, cpu = time.perf_counter(), time.process_time()
-    names, clouds = register.load_scans([data / f"{n}.ply" for n in names])
-    result = register.register(names, clouds, config, frame=REFERENCE_SCAN, progress=print)
+    names, clouds = registration.load_scans([data / f"{n}.ply" for n in names])
+    result = registration.register(names, clouds, config, frame=REFERENCE_SCAN, progress=print)
     elapsed, cpu_seconds = time.perf_counter() - wall, time.process_time() - cpu
 
     frame = result.frame
@@ -91,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         else "  (a scan matched with < 2 others has no loop closure: its error stays chained)"
     )
     print()
-    table, summary = register.error_table(
+    table, summary = registration.error_table(
         names, frame, reference, {"chain": result.chained, "joint": result.poses}
     )
     print("errors vs bun.conf (rotation in degrees, translation in mm):")
@@ -129,8 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(f"  {'poses':<9} {'joint cost on final tracks':>27} {'point-to-plane RMS (mm)':>24}")
     for label, poses in frame0.items():
-        cost = register.joint_cost(refinement, poses, config)
-        rms = register.alignment_residual(
+        cost = registration.joint_cost(refinement, poses, config)
+        rms = registration.alignment_residual(
             refinement.track_clouds, poses, pairs, config.voxel_size, config.normal_neighbors
         )
         print(f"  {label:<9} {cost:27.6g} {rms * 1000:24.4f}")
@@ -140,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         f"matched scan within {config.voxel_size * 1000:g} mm)"
     )
     tic = time.perf_counter()
-    from_reference = register.refine(result.clouds, frame0["bun.conf"], config)
+    from_reference = registration.refine(result.clouds, frame0["bun.conf"], config)
     converged = relative_to_first(from_reference.poses, frame)
     print(
         f"  joint refinement started from bun.conf ({len(from_reference.rounds)} rounds, "
@@ -160,19 +163,19 @@ def main(argv: list[str] | None = None) -> int:
             "tangent_weight 1 (isotropic)": replace(config, tangent_weight=1.0),
         }
         for label, variant in variants.items():
-            out = register.refine(small, chained0, variant, pairs=pairs)
+            out = registration.refine(small, chained0, variant, pairs=pairs)
             poses = relative_to_first(out.poses, frame)
             print(f"  {label:<30} {_summary(poses, reference, frame)}")
-        strict, _ = register.overlapping_pairs(small, chained0, config.voxel_size, 0.3)
+        strict, _ = registration.overlapping_pairs(small, chained0, config.voxel_size, 0.3)
         strict = sorted(set(strict) | {(k, k + 1) for k in range(len(names) - 1)})
-        out = register.refine(small, chained0, config, pairs=strict)
+        out = registration.refine(small, chained0, config, pairs=strict)
         poses = relative_to_first(out.poses, frame)
         print(f"  {'min_overlap 0.3':<30} {_summary(poses, reference, frame)}")
 
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-        register.write_poses(args.out / "poses.txt", names, result.poses, frame=names[frame])
-        register.plot_registration(result, args.out / "bunny_register.png")
+        write_poses(args.out / "poses.txt", names, result.poses, frame=names[frame])
+        plots.plot_registration(result, args.out / "bunny_register.png")
         print(f"\nwrote {args.out / 'poses.txt'} and {args.out / 'bunny_register.png'}")
     return 0
 

@@ -22,11 +22,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchslam import cli, demo
+from torchslam import cli
+from torchslam.cli import demo
+from torchslam.cli import posegraph as posegraph_command
 from torchslam.io import g2o
 from torchslam.io.ply import write_ply
 from torchslam.lie import se3, so3
-from torchslam.posegraph import command
 from torchslam.posegraph.graph import PoseGraph
 from torchslam.solver import Status
 
@@ -265,9 +266,9 @@ def test_posegraph_status_decides_the_exit_status(ring, capsys, monkeypatch):
     code, out, err = call(["posegraph", str(ring), "--max-iterations", "1"], capsys)
     assert code == 0 and "status MAX_ITERATIONS" in out
     assert "warning: the solve stopped without converging: status MAX_ITERATIONS" in err
-    real = command.solve_pose_graph
+    real = posegraph_command.solve_pose_graph
     monkeypatch.setattr(
-        command,
+        posegraph_command,
         "solve_pose_graph",
         lambda *a, **k: dataclasses.replace(real(*a, **k), status=Status.NON_FINITE),
     )
@@ -371,9 +372,9 @@ def test_register_without_matplotlib_writes_the_rest(no_matplotlib, tmp_path, ca
 
 @pytest.mark.parametrize("sub", ["register", "bench"])
 def test_module_mains_share_the_contract(sub, capsys):
-    from torchslam import benchmark, register
+    from torchslam.cli import bench, register
 
-    main = register.main if sub == "register" else benchmark.main
+    main = register.main if sub == "register" else bench.main
     argv = ["a.ply", "b.ply", "--rounds", "-2"] if sub == "register" else ["--repeats", "-2"]
     code, _, err = call_main(main, argv, capsys)
     assert_one_line_error(code, err, f"torchslam {sub}", "argument")

@@ -12,9 +12,10 @@ import pytest
 import torch
 
 import torchslam
-from torchslam import alignment, icp, tracks
-from torchslam.icp import ICPConfig
+from torchslam import alignment
 from torchslam.lie import se3, so3
+from torchslam.registration import icp, tracks
+from torchslam.registration.icp import ICPConfig
 
 F64 = torch.float64
 

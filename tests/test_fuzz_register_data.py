@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from torchslam import cli, initialization
-from torchslam import register as reg
+from torchslam import registration as reg
 from torchslam.data import make_loop_scene, make_scene
-from torchslam.io import g2o, ply, stanford
+from torchslam.io import g2o, ply, stanford, trajectories
 from torchslam.lie import se3
 
 D = torch.float64
@@ -38,21 +38,21 @@ def test_write_poses_refuses_names_read_poses_would_lose(tmp_path):
     P = _poses(2)
     for names in (["#a", "b"], ["a b", "c"], ["", "c"], ["a\t", "c"], ["a", "a"]):
         with pytest.raises(ValueError, match="write_poses: argument 'names'"):
-            reg.write_poses(path, names, P)
+            trajectories.write_poses(path, names, P)
         assert not path.exists()  # nothing written before the check
     with pytest.raises(TypeError, match="write_poses: argument 'names'"):
-        reg.write_poses(path, [1, 2], P)
+        trajectories.write_poses(path, [1, 2], P)
     with pytest.raises(TypeError, match="write_poses: argument 'names'"):
-        reg.write_poses(path, "ab", P)
+        trajectories.write_poses(path, "ab", P)
     with pytest.raises(ValueError, match="write_poses: argument 'poses' must have shape"):
-        reg.write_poses(path, ["a", "b", "c"], P)
+        trajectories.write_poses(path, ["a", "b", "c"], P)
     with pytest.raises(ValueError, match="write_poses: argument 'poses'"):
-        reg.write_poses(path, ["a", "b"], torch.ones(2, 4, 4, dtype=D))
+        trajectories.write_poses(path, ["a", "b"], torch.ones(2, 4, 4, dtype=D))
     # numpy poses are accepted; the file reads back exactly the names and (to round-off) poses
     names = ["a#", "b-1", "c.2"]
     P3 = _poses(3, seed=1)
-    reg.write_poses(path, names, P3.numpy())
-    back_names, back = reg.read_poses(path)
+    trajectories.write_poses(path, names, P3.numpy())
+    back_names, back = trajectories.read_poses(path)
     assert back_names == names
     # repr() writes shortest round-trip decimals; the quaternion → matrix conversion adds a
     # few ulps of the unit-norm entries.
@@ -61,16 +61,16 @@ def test_write_poses_refuses_names_read_poses_would_lose(tmp_path):
 
 def test_read_poses_path_dtype_and_range(tmp_path):
     with pytest.raises(ValueError, match="read_poses: argument 'path' must be a file"):
-        reg.read_poses(tmp_path)
+        trajectories.read_poses(tmp_path)
     with pytest.raises(TypeError, match="read_poses: argument 'path'"):
-        reg.read_poses(3)
+        trajectories.read_poses(3)
     path = tmp_path / "p.txt"
     path.write_text("a 0 0 0 1 0 0 0\nb 1e300 0 0 1 0 0 0\n")
     with pytest.raises(TypeError, match="read_poses: argument 'dtype'"):
-        reg.read_poses(path, dtype=torch.int64)
+        trajectories.read_poses(path, dtype=torch.int64)
     with pytest.raises(ValueError, match=r"read_poses: .*p\.txt: line 2: .*overflows"):
-        reg.read_poses(path, dtype=torch.float32)
-    names, P = reg.read_poses(path)  # float64 holds 1e300
+        trajectories.read_poses(path, dtype=torch.float32)
+    names, P = trajectories.read_poses(path)  # float64 holds 1e300
     assert names == ["a", "b"] and float(P[1, 0, 3]) == 1e300
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchslam import icp
-from torchslam.icp import ICPConfig, ICPStatus
 from torchslam.io.stanford import pose_errors, read_conf, stack
 from torchslam.lie import se3, so3
+from torchslam.registration import icp
+from torchslam.registration.icp import ICPConfig, ICPStatus
 
 F64 = torch.float64
 

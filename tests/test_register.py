@@ -15,10 +15,13 @@ import numpy as np
 import pytest
 import torch
 
-from torchslam import icp, register
+from torchslam import registration
+from torchslam.cli import register as register_command
 from torchslam.io.ply import read_ply, write_ply
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first
+from torchslam.io.trajectories import read_poses, write_poses
 from torchslam.lie import convert, se3, so3
+from torchslam.registration import icp
 
 VOXEL = 0.04
 BUNNY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
@@ -79,8 +82,8 @@ def critter() -> tuple[torch.Tensor, list[torch.Tensor]]:
     return critter_scans()
 
 
-def config(**changes) -> register.RegisterConfig:
-    return register.RegisterConfig(voxel_size=VOXEL, hypotheses=32, **changes)
+def config(**changes) -> registration.RegisterConfig:
+    return registration.RegisterConfig(voxel_size=VOXEL, hypotheses=32, **changes)
 
 
 def errors(estimated: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
@@ -96,7 +99,7 @@ def test_pipeline_recovers_known_poses(critter):
     truth, clouds = critter
     names = [f"s{i}" for i in range(len(clouds))]
     lines: list[str] = []
-    result = register.register(names, clouds, config(), progress=lines.append)
+    result = registration.register(names, clouds, config(), progress=lines.append)
     chain_rotation, _ = errors(result.chained, truth)
     rotation, translation = errors(result.poses, truth)
     # The object is ~3 units across and the voxels 0.04: 0.25° and 0.005 are well below both.
@@ -121,7 +124,7 @@ def test_joint_refinement_removes_injected_drift(critter):
         drifted.append(se3.compose(se3.compose(drifted[-1], relative), step))
     drifted = torch.stack(drifted)
     small = [icp.voxel_downsample(c, VOXEL) for c in clouds]
-    result = register.refine(small, drifted, config())
+    result = registration.refine(small, drifted, config())
     drift_rotation, drift_translation = errors(drifted, truth)
     rotation, translation = errors(result.poses, truth)
     assert drift_rotation > 1.0 and drift_translation > 0.04
@@ -132,19 +135,19 @@ def test_joint_refinement_removes_injected_drift(critter):
 def test_refine_keeps_exact_poses_nearly_fixed(critter):
     truth, clouds = critter
     small = [icp.voxel_downsample(c, VOXEL) for c in clouds]
-    result = register.refine(small, truth, config(rounds=2))
+    result = registration.refine(small, truth, config(rounds=2))
     rotation, translation = errors(result.poses, truth)
     assert rotation < 0.2 and translation < 0.003  # noise-level bias only
     # On the same tracks the estimate is at least as consistent as the truth (it minimizes).
-    cost_truth = register.joint_cost(result, truth, config())
-    cost_estimate = register.joint_cost(result, result.poses, config())
+    cost_truth = registration.joint_cost(result, truth, config())
+    cost_estimate = registration.joint_cost(result, result.poses, config())
     assert cost_estimate <= cost_truth * (1 + 1e-6)
 
 
 def test_zero_rounds_returns_chained_poses(critter):
     _, clouds = critter
     names = [f"s{i}" for i in range(3)]
-    result = register.register(names, clouds[:3], config(rounds=0), frame="s1")
+    result = registration.register(names, clouds[:3], config(rounds=0), frame="s1")
     assert result.refinement.rounds == []
     assert torch.allclose(result.poses, result.chained)
     assert result.frame == 1
@@ -153,7 +156,7 @@ def test_zero_rounds_returns_chained_poses(critter):
 
 def test_information_matrices_and_boundary_mask():
     normals = torch.nn.functional.normalize(torch.randn(5, 3, dtype=torch.float64), dim=-1)
-    omega = register.information_matrices(normals, 0.01)
+    omega = registration.information_matrices(normals, 0.01)
     eigenvalues = torch.linalg.eigvalsh(omega)
     assert torch.allclose(eigenvalues, torch.tensor([0.01, 0.01, 1.0]).expand(5, 3).double())
     assert torch.allclose((omega @ normals[..., None])[..., 0], normals)
@@ -161,7 +164,7 @@ def test_information_matrices_and_boundary_mask():
     g = torch.arange(20, dtype=torch.float64)
     x, y = torch.meshgrid(g, g, indexing="ij")
     grid = torch.stack((x.reshape(-1), y.reshape(-1), torch.zeros(400, dtype=torch.float64)), -1)
-    mask = register.boundary_mask(grid, 12, 0.3).reshape(20, 20)
+    mask = registration.boundary_mask(grid, 12, 0.3).reshape(20, 20)
     assert mask[0].all() and mask[-1].all() and mask[:, 0].all() and mask[:, -1].all()
     assert not mask[3:-3, 3:-3].any()
 
@@ -170,18 +173,18 @@ def test_overlapping_pairs():
     cloud = torch.rand(500, 3, dtype=torch.float64)
     far = cloud + torch.tensor([10.0, 0.0, 0.0], dtype=torch.float64)
     poses = torch.eye(4, dtype=torch.float64).expand(3, 4, 4)
-    pairs, overlap = register.overlapping_pairs([cloud, cloud.clone(), far], poses, 1e-6, 0.5)
+    pairs, overlap = registration.overlapping_pairs([cloud, cloud.clone(), far], poses, 1e-6, 0.5)
     assert pairs == [(0, 1)]
     assert overlap.shape == (3, 3) and float(overlap[0, 1]) == 1.0 and float(overlap[0, 2]) == 0.0
 
 
 def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="voxel_size"):
-        register.RegisterConfig(voxel_size=0.0)
+        registration.RegisterConfig(voxel_size=0.0)
     with pytest.raises(ValueError, match="tangent_weight"):
-        register.RegisterConfig(tangent_weight=0.0)
+        registration.RegisterConfig(tangent_weight=0.0)
     with pytest.raises(ValueError, match="loss"):
-        register.RegisterConfig(loss="l1")
+        registration.RegisterConfig(loss="l1")
 
 
 # ----------------------------------------------------------------------------- files
@@ -191,8 +194,8 @@ def test_pose_file_round_trip(tmp_path):
     xi = torch.randn(4, 6, dtype=torch.float64)
     poses = se3.exp(xi)
     path = tmp_path / "poses.txt"
-    register.write_poses(path, ["a", "b", "c", "d"], poses, frame="a")
-    names, back = register.read_poses(path)
+    write_poses(path, ["a", "b", "c", "d"], poses, frame="a")
+    names, back = read_poses(path)
     assert names == ["a", "b", "c", "d"]
     assert torch.allclose(back, poses, atol=1e-12)
     first = path.read_text().splitlines()[2].split()
@@ -203,25 +206,25 @@ def test_read_poses_rejects_malformed_lines(tmp_path):
     path = tmp_path / "bad.txt"
     path.write_text("a 0 0 0 1 0 0\n")
     with pytest.raises(ValueError, match="line 1: expected"):
-        register.read_poses(path)
+        read_poses(path)
     path.write_text("a 0 0 0 one 0 0 0\n")
     with pytest.raises(ValueError, match="line 1: expected a number, got 'one'"):
-        register.read_poses(path)
+        read_poses(path)
 
 
 def test_load_scans_errors(tmp_path):
     good = tmp_path / "good.ply"
     write_ply(good, torch.rand(50, 3, dtype=torch.float64))
     with pytest.raises(FileNotFoundError, match="no such scan file"):
-        register.load_scans([good, tmp_path / "missing.ply"])
+        registration.load_scans([good, tmp_path / "missing.ply"])
     with pytest.raises(ValueError, match="at least 2"):
-        register.load_scans([good])
+        registration.load_scans([good])
     with pytest.raises(ValueError, match="distinct"):
-        register.load_scans([good, good])
+        registration.load_scans([good, good])
     broken = tmp_path / "broken.ply"
     broken.write_text("this is not a ply file\n")
     with pytest.raises(ValueError, match=r"broken\.ply"):
-        register.load_scans([good, broken])
+        registration.load_scans([good, broken])
 
 
 # ----------------------------------------------------------------------------- command line
@@ -251,13 +254,13 @@ def test_cli_writes_outputs_and_error_table(critter, tmp_path, capsys):
     out = tmp_path / "out"
     argv = [*map(str, paths), "--out", str(out), "--voxel-size", str(VOXEL)]
     argv += ["--hypotheses", "32", "--rounds", "2", "--reference", str(conf), "--frame", "view1"]
-    assert register.main(argv) == 0
+    assert register_command.main(argv) == 0
     stdout = capsys.readouterr().out
     for stage in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
         assert stage in stdout
     assert "chain rot°" in stdout and "mean" in stdout and "max" in stdout
 
-    read_names, poses = register.read_poses(out / "poses.txt")
+    read_names, poses = read_poses(out / "poses.txt")
     assert read_names == names
     expected = relative_to_first(truth[:4], 1)
     rotation, translation = pose_errors(poses, expected, None)
@@ -292,7 +295,7 @@ def test_cli_bad_input_is_one_line_error(extra, fragment, tmp_path, capsys, monk
     Path("broken.ply").write_text(header + "1 2 3\n4 5\n")  # second vertex truncated
     scans = ["a.ply", "b.ply", *(e for e in extra if e.endswith(".ply"))]
     options = [e for e in extra if not e.endswith(".ply")]
-    assert register.main([*scans, *options, "--out", "out"]) == 2
+    assert register_command.main([*scans, *options, "--out", "out"]) == 2
     err = capsys.readouterr().err
     assert fragment in err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
@@ -315,7 +318,7 @@ def test_too_few_points_at_a_voxel_size_is_a_clear_error(generator):
     cloud = torch.rand(40, 3, generator=generator, dtype=torch.float64)
     flat = torch.ones(40, 3, dtype=torch.float64)  # one voxel at any pitch
     with pytest.raises(ValueError, match=r"scan 'b' keeps 1 of 40 points on a 0\.04 voxel"):
-        register.register(["a", "b"], [cloud, flat], config())
+        registration.register(["a", "b"], [cloud, flat], config())
     stage = icp.Stage(voxel_size=10.0)
     initial = torch.eye(4, dtype=torch.float64)[None]
     with pytest.raises(ValueError, match=r"level 0 \(voxel size 10\) leaves 1 source"):
@@ -332,9 +335,9 @@ def test_too_few_points_at_a_voxel_size_is_a_clear_error(generator):
 )
 def test_bunny_three_scans_against_bun_conf():
     names = ["bun000", "bun045", "top3"]
-    scan_names, clouds = register.load_scans([BUNNY / f"{n}.ply" for n in names])
-    cfg = register.RegisterConfig(hypotheses=64, rounds=2)
-    result = register.register(scan_names, clouds, cfg)
+    scan_names, clouds = registration.load_scans([BUNNY / f"{n}.ply" for n in names])
+    cfg = registration.RegisterConfig(hypotheses=64, rounds=2)
+    result = registration.register(scan_names, clouds, cfg)
     reference = torch.stack([read_conf(BUNNY / "bun.conf")[n] for n in names])
     rotation, translation = pose_errors(result.poses, reference, 0)
     assert float(rotation.max()) < 0.5  # degrees

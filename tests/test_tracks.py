@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchslam import tracks
 from torchslam.lie import se3
+from torchslam.registration import tracks
 
 F64 = torch.float64
 

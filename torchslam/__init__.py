@@ -8,7 +8,7 @@ float64 by default.
 from torchslam import (
     alignment,
     data,
-    icp,
+    icp,  # deprecated alias of registration.icp (a shim module)
     initialization,
     io,
     jacobians,
@@ -16,8 +16,9 @@ from torchslam import (
     manifold,
     metrics,
     posegraph,
+    registration,
     terms,
-    tracks,
+    tracks,  # deprecated alias of registration.tracks (a shim module)
 )
 from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
@@ -62,6 +63,7 @@ __all__ = [
     "manifold",
     "metrics",
     "posegraph",
+    "registration",
     "se3",
     "so3",
     "solve",

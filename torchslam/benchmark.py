@@ -1,34 +1,31 @@
-"""Solver benchmark: cases S, M, L, O, BATCH; timings, FLOP ratio, scipy comparison.
+"""Solver benchmark measurements: cases S, M, L, O, BATCH; timings, FLOP ratio, scipy comparison.
 
-    torchslam bench [--cases S M L O BATCH] [--repeats N] [--quick] [--out DIR]
-    (or .venv/bin/python experiments/bench_solver.py with the same options)
+The command ``torchslam bench`` (:mod:`torchslam.cli.bench`; or
+``.venv/bin/python experiments/bench_solver.py`` with the same options) runs these
+measurements, prints the table and writes out/bench_solver.json and out/bench_solver.png.
 
 Every case starts from drifted odometry (1° and 2 cm of error per step, chained) and solves in
-float64 with torch threads = 2 and the default stopping rules (SolverConfig()). Printed per
-case: median wall time over repeats, iterations, time per iteration, final cost, mean pose
-rotation error vs ground truth, the per-iteration FLOP estimate of the Schur step and the ratio
-of the measured time per iteration to that FLOP count at the machine's measured matmul rate,
-and — when scipy is installed — scipy.optimize.least_squares (trf, exact sparse Jacobian, same
-start, same manifold parameterization) on the same data with the speed ratio. L's peak memory
-(resident set) is measured in a fresh subprocess. Results go to out/bench_solver.json and
-out/bench_solver.png.
+float64 with the default stopping rules (SolverConfig()). Measured per case
+(:func:`run_case`): median wall time over repeats, iterations, time per iteration, final cost,
+mean pose rotation error vs ground truth, the per-iteration FLOP estimate of the Schur step and
+the ratio of the measured time per iteration to that FLOP count at the machine's measured
+matmul rate, and — when scipy is installed — scipy.optimize.least_squares (trf, exact sparse
+Jacobian, same start, same manifold parameterization) on the same data with the speed ratio.
+L's peak memory (resident set) is measured in a fresh subprocess
+(:func:`peak_memory_subprocess`).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable
-from pathlib import Path
 
 import torch
 
 import torchslam as ts
-from torchslam import _plotting
+from torchslam import _deprecated
 from torchslam.lie import se3
 
 REPEATS = {"S": 20, "M": 10, "L": 3, "O": 5, "BATCH": 5}
@@ -198,138 +195,10 @@ def peak_memory_subprocess(case: str) -> float:
     return int(out.stdout.split()[-1]) / 2**20
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``torchslam bench``."""
-    from torchslam.cli import int_range
-
-    parser.add_argument(
-        "--cases", nargs="+", default=["S", "M", "L", "O", "BATCH"], choices=list(REPEATS)
-    )
-    parser.add_argument(
-        "--repeats", type=int_range(1, 1000), default=None, help="runs per case [1, 1000] (median)"
-    )
-    parser.add_argument("--quick", action="store_true", help="2 repeats, no scipy, no memory")
-    parser.add_argument("--no-scipy", action="store_true")
-    parser.add_argument(
-        "--threads", type=int_range(1, 1024), default=2, help="torch threads [1, 1024] (2)"
-    )
-    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
-
-
-def _stderr(line: str) -> None:
-    print(line, file=sys.stderr)
-
-
-def run(
-    args: argparse.Namespace,
-    echo: Callable[[str], None] = print,
-    warn: Callable[[str], None] = _stderr,
-) -> list[dict]:
-    """Run the benchmark; print progress and a table; write JSON (and PNG) to ``args.out``.
-
-    The figure needs matplotlib; without it one line ``figure skipped: …`` goes to ``warn``.
-    """
-    if args.repeats is not None and args.repeats < 1:
-        raise ValueError(f"--repeats must be ≥ 1, got {args.repeats}")
-    if args.threads < 1:
-        raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
-    out_dir = args.out
-    out_dir.mkdir(parents=True, exist_ok=True)
-    torch.set_num_threads(args.threads)
-    rate = matmul_rate()
-    echo(
-        f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
-        f"float64 matmul rate {rate / 1e9:.1f} GFLOP/s"
-    )
-    rows = []
-    for index, case in enumerate(args.cases):
-        echo(f"[{index + 1}/{len(args.cases)}] case {case} …")
-        repeats = 2 if args.quick else (args.repeats or REPEATS[case])
-        row = run_case(case, repeats, rate, with_scipy=not (args.quick or args.no_scipy))
-        if case == "L" and not args.quick:
-            row["peak_memory_gib"] = peak_memory_subprocess("L")
-        rows.append(row)
-        echo(_format_row(row))
-
-    echo("")
-    echo(
-        f"{'case':6} {'time':>9} {'target':>8} {'iters':>5} {'ms/iter':>8} {'FLOP ratio':>10} "
-        f"{'rot err °':>10} {'scipy':>8} {'speed-up':>8}"
-    )
-    for r in rows:
-        target = TARGETS_S.get(r["case"])
-        target_text = f"{target * 1e3:.0f}ms" if target else "-"
-        scipy_text = f"{r['scipy_s']:.3f}s" if "scipy_s" in r else "-"
-        speedup_text = f"{r['speedup_vs_scipy']:.1f}×" if "speedup_vs_scipy" in r else "-"
-        echo(
-            f"{r['case']:6} {r['median_s'] * 1e3:7.1f}ms {target_text:>8} {r['iterations']:5d} "
-            f"{r['per_iteration_s'] * 1e3:8.2f} {r['flop_ratio']:10.1f} "
-            f"{r['rotation_error_deg']:10.5f} {scipy_text:>8} {speedup_text:>8}"
-        )
-    json_path, png_path = out_dir / "bench_solver.json", out_dir / "bench_solver.png"
-    json_path.write_text(
-        json.dumps({"matmul_rate": rate, "threads": args.threads, "cases": rows}, indent=2)
-    )
-    written = [json_path]
-    try:
-        _plot(rows, png_path)
-    except _plotting.MatplotlibMissingError as error:
-        warn(f"figure skipped: {error}")
-    else:
-        written.append(png_path)
-    echo(f"\nwrote {' and '.join(map(str, written))}")
-    return rows
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python experiments/bench_solver.py``: the same as ``torchslam bench``."""
-    from torchslam import cli
-
-    return cli.main(["bench", *(sys.argv[1:] if argv is None else argv)])
-
-
-def _format_row(r: dict) -> str:
-    extra = ""
-    if "scipy_s" in r:
-        extra = (
-            f"; scipy {r['scipy_s']:.3f} s (cost {r['scipy_final_cost']:.6g}), "
-            f"speed-up {r['speedup_vs_scipy']:.1f}×"
-        )
-    if "peak_memory_gib" in r:
-        extra += f"; peak memory {r['peak_memory_gib']:.2f} GiB"
-    return (
-        f"{r['case']}: B={r['B']} m={r['m']} n={r['n']} E={r['observations']}: "
-        f"{r['median_s'] * 1e3:.1f} ms median, {r['iterations']} iterations, "
-        f"{r['per_iteration_s'] * 1e3:.2f} ms/iteration (FLOP model {r['flop_time_s'] * 1e3:.2f}"
-        f" ms → ratio {r['flop_ratio']:.1f}), cost {r['final_cost']:.6g}, rotation error "
-        f"{r['initial_rotation_error_deg']:.3f}° → {r['rotation_error_deg']:.5f}° "
-        f"(max {r['max_rotation_error_deg']:.5f}°), status {','.join(r['status'])}{extra}"
-    )
-
-
-def _plot(rows: list[dict], path: Path) -> None:
-    """Bar chart of the timings (raises MatplotlibMissingError without matplotlib)."""
-    plt = _plotting.require_pyplot()
-    cases = [r["case"] for r in rows]
-    fig, ax = plt.subplots(figsize=(7, 4))
-    x = range(len(cases))
-    ax.bar([i - 0.2 for i in x], [r["median_s"] for r in rows], 0.4, label="torchslam (LM)")
-    if any("scipy_s" in r for r in rows):
-        ax.bar(
-            [i + 0.2 for i in x],
-            [r.get("scipy_s", 0) for r in rows],
-            0.4,
-            label="scipy least_squares (trf)",
-        )
-    ax.set_yscale("log")
-    ax.set_xticks(list(x), cases)
-    ax.set_ylabel("wall time (s), log scale")
-    ax.set_title("ICP-SLAM solve time, float64, 2 threads")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
+# The command itself moved to torchslam.cli.bench; its names are forwarded for one release.
+__getattr__ = _deprecated.moved(__name__, {"torchslam.cli.bench": ("add_arguments", "main", "run")})
 
 if __name__ == "__main__":
+    from torchslam.cli.bench import main
+
     sys.exit(main())

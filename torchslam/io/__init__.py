@@ -1,8 +1,10 @@
-"""File formats: PLY point clouds (``ply``) and Stanford scan alignments (``stanford``)."""
+"""File formats: PLY point clouds (``ply``), Stanford scan alignments (``stanford``) and pose
+files (``trajectories``)."""
 
-from torchslam.io import ply, stanford
+from torchslam.io import ply, stanford, trajectories
 from torchslam.io.ply import PlyData, PlyElement, PlyProperty, read_ply, read_ply_points, write_ply
 from torchslam.io.stanford import read_conf
+from torchslam.io.trajectories import read_poses, write_poses
 
 __all__ = [
     "PlyData",
@@ -12,6 +14,9 @@ __all__ = [
     "read_conf",
     "read_ply",
     "read_ply_points",
+    "read_poses",
     "stanford",
+    "trajectories",
     "write_ply",
+    "write_poses",
 ]

@@ -23,6 +23,11 @@ Figures need matplotlib (``pip install 'torchslam[plot]'``). Without it, the fig
 command writes by default (``demo``, ``bench``, ``register``) are skipped with one
 ``figure skipped: …`` line on stderr and exit status 0; ``posegraph --plot`` asks for one
 explicitly and stops with status 2 before solving.
+
+Layout: this module holds the parser, the shared option types and the exit-status rules; each
+subcommand has its module (:mod:`~torchslam.cli.demo`, :mod:`~torchslam.cli.bench`,
+:mod:`~torchslam.cli.posegraph`, :mod:`~torchslam.cli.register`: options, ``run``), and
+:mod:`~torchslam.cli.plots` draws every figure (matplotlib, imported lazily).
 """
 
 from __future__ import annotations
@@ -127,6 +132,11 @@ def add_common_options(parser: argparse.ArgumentParser, *, top_level: bool = Fal
     parser.add_argument("--version", action="version", version=f"torchslam {__version__}")
 
 
+def _stderr(line: str) -> None:
+    """The default ``warn`` of the subcommands' ``run`` functions: one line on stderr."""
+    print(line, file=sys.stderr)
+
+
 def solve_exit_status(
     statuses: Iterable, warn: Callable[[str], None], what: str = "the solve"
 ) -> int:
@@ -166,9 +176,12 @@ def _parser() -> Parser:
         "it with Levenberg-Marquardt (one progress line per iteration), print a summary table "
         "and write demo.png (needs matplotlib; skipped with a message without it).",
     )
-    from torchslam.demo import add_arguments as add_demo_arguments
+    from torchslam.cli import bench as bench_command
+    from torchslam.cli import demo as demo_command
+    from torchslam.cli import posegraph as posegraph_command
+    from torchslam.cli import register as register_command
 
-    add_demo_arguments(demo)
+    demo_command.add_arguments(demo)
     add_common_options(demo)
 
     bench = sub.add_parser(
@@ -177,9 +190,7 @@ def _parser() -> Parser:
         description="Time the solver on the synthetic cases S, M, L, O, BATCH (float64), compare "
         "with scipy.optimize.least_squares, write bench_solver.json and bench_solver.png.",
     )
-    from torchslam.benchmark import add_arguments
-
-    add_arguments(bench)
+    bench_command.add_arguments(bench)
     add_common_options(bench)
 
     posegraph = sub.add_parser(
@@ -190,9 +201,7 @@ def _parser() -> Parser:
         "(one progress line per iteration), print the costs before and after, optionally "
         "write the optimized graph and a figure of the trajectory before and after.",
     )
-    from torchslam.posegraph.command import add_arguments as add_posegraph_arguments
-
-    add_posegraph_arguments(posegraph)
+    posegraph_command.add_arguments(posegraph)
     add_common_options(posegraph)
 
     register = sub.add_parser(
@@ -202,9 +211,7 @@ def _parser() -> Parser:
         "poses, point tracks, then the joint ICP-SLAM least-squares solve (robust), "
         "re-associated a few rounds. Writes poses.txt, merged.ply and registration.png.",
     )
-    from torchslam.register import add_arguments as add_register_arguments
-
-    add_register_arguments(register)
+    register_command.add_arguments(register)
     add_common_options(register)
     return parser
 
@@ -236,13 +243,13 @@ def run_guarded(prog: str, body: Callable[[], int]) -> int:
     try:
         return body()
     except (ValueError, TypeError, OSError) as error:
-        print(f"{prog}: error: {_one_line(error)}", file=sys.stderr)
+        _stderr(f"{prog}: error: {_one_line(error)}")
         return EXIT_USAGE
     except MemoryError:
-        print(f"{prog}: error: out of memory (try smaller sizes)", file=sys.stderr)
+        _stderr(f"{prog}: error: out of memory (try smaller sizes)")
         return EXIT_FAILED
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
+        _stderr(f"{prog}: interrupted")
         return EXIT_INTERRUPTED
 
 
@@ -282,32 +289,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     echo: Callable[[str], None] = (lambda _line: None) if quiet else print
 
     def warn(line: str) -> None:
-        print(f"{prog}: {line}", file=sys.stderr)
+        _stderr(f"{prog}: {line}")
 
     def body() -> int:
         if args.command == "demo":
-            from torchslam.demo import options_from_args, run_demo
+            from torchslam.cli import demo
 
-            result = run_demo(options_from_args(args), echo=echo, warn=warn)
+            result = demo.run_demo(demo.options_from_args(args), echo=echo, warn=warn)
             return solve_exit_status(result.status, warn)
         if args.command == "bench":
-            from torchslam.benchmark import run
+            from torchslam.cli import bench
 
-            rows = run(args, echo=echo, warn=warn)
+            rows = bench.run(args, echo=echo, warn=warn)
             statuses = [s for row in rows for s in row["status"]]
             return solve_exit_status(statuses, warn, "a benchmark solve")
         if args.command == "posegraph":
-            from torchslam.posegraph.command import options_from_args, run_posegraph
+            from torchslam.cli import posegraph
 
-            result = run_posegraph(options_from_args(args), echo=echo)
+            result = posegraph.run_posegraph(posegraph.options_from_args(args), echo=echo)
             return solve_exit_status([result.status], warn)
-        from torchslam.register import run as run_register
+        from torchslam.cli import register
 
-        return run_register(args, echo=echo, warn=warn)
+        return register.run(args, echo=echo, warn=warn)
 
     with _Logging(verbose):
         return run_guarded(prog, body)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,0 +1,131 @@
+"""``torchslam bench``: the solver benchmark (cases S, M, L, O, BATCH) with a table and a figure.
+
+    torchslam bench [--cases S M L O BATCH] [--repeats N] [--quick] [--out DIR]
+    (or .venv/bin/python experiments/bench_solver.py with the same options)
+
+The measurements are those of :mod:`torchslam.benchmark` (float64, torch threads = 2 unless
+``--threads`` says otherwise). Printed: one line per case and a summary table; written:
+out/bench_solver.json and out/bench_solver.png (the figure needs matplotlib).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from torchslam.benchmark import REPEATS, TARGETS_S, matmul_rate, peak_memory_subprocess, run_case
+from torchslam.cli import _stderr, int_range, plots
+
+__all__ = ["add_arguments", "main", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``torchslam bench``."""
+    parser.add_argument(
+        "--cases", nargs="+", default=["S", "M", "L", "O", "BATCH"], choices=list(REPEATS)
+    )
+    parser.add_argument(
+        "--repeats", type=int_range(1, 1000), default=None, help="runs per case [1, 1000] (median)"
+    )
+    parser.add_argument("--quick", action="store_true", help="2 repeats, no scipy, no memory")
+    parser.add_argument("--no-scipy", action="store_true")
+    parser.add_argument(
+        "--threads", type=int_range(1, 1024), default=2, help="torch threads [1, 1024] (2)"
+    )
+    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
+
+
+def run(
+    args: argparse.Namespace,
+    echo: Callable[[str], None] = print,
+    warn: Callable[[str], None] = _stderr,
+) -> list[dict]:
+    """Run the benchmark; print progress and a table; write JSON (and PNG) to ``args.out``.
+
+    The figure needs matplotlib; without it one line ``figure skipped: …`` goes to ``warn``.
+    """
+    if args.repeats is not None and args.repeats < 1:
+        raise ValueError(f"--repeats must be ≥ 1, got {args.repeats}")
+    if args.threads < 1:
+        raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
+    out_dir = args.out
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(args.threads)
+    rate = matmul_rate()
+    echo(
+        f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"float64 matmul rate {rate / 1e9:.1f} GFLOP/s"
+    )
+    rows = []
+    for index, case in enumerate(args.cases):
+        echo(f"[{index + 1}/{len(args.cases)}] case {case} …")
+        repeats = 2 if args.quick else (args.repeats or REPEATS[case])
+        row = run_case(case, repeats, rate, with_scipy=not (args.quick or args.no_scipy))
+        if case == "L" and not args.quick:
+            row["peak_memory_gib"] = peak_memory_subprocess("L")
+        rows.append(row)
+        echo(_format_row(row))
+
+    echo("")
+    echo(
+        f"{'case':6} {'time':>9} {'target':>8} {'iters':>5} {'ms/iter':>8} {'FLOP ratio':>10} "
+        f"{'rot err °':>10} {'scipy':>8} {'speed-up':>8}"
+    )
+    for r in rows:
+        target = TARGETS_S.get(r["case"])
+        target_text = f"{target * 1e3:.0f}ms" if target else "-"
+        scipy_text = f"{r['scipy_s']:.3f}s" if "scipy_s" in r else "-"
+        speedup_text = f"{r['speedup_vs_scipy']:.1f}×" if "speedup_vs_scipy" in r else "-"
+        echo(
+            f"{r['case']:6} {r['median_s'] * 1e3:7.1f}ms {target_text:>8} {r['iterations']:5d} "
+            f"{r['per_iteration_s'] * 1e3:8.2f} {r['flop_ratio']:10.1f} "
+            f"{r['rotation_error_deg']:10.5f} {scipy_text:>8} {speedup_text:>8}"
+        )
+    json_path, png_path = out_dir / "bench_solver.json", out_dir / "bench_solver.png"
+    json_path.write_text(
+        json.dumps({"matmul_rate": rate, "threads": args.threads, "cases": rows}, indent=2)
+    )
+    written = [json_path]
+    try:
+        plots.plot_bench(rows, png_path)
+    except plots.MatplotlibMissingError as error:
+        warn(f"figure skipped: {error}")
+    else:
+        written.append(png_path)
+    echo(f"\nwrote {' and '.join(map(str, written))}")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python experiments/bench_solver.py``: the same as ``torchslam bench``."""
+    from torchslam import cli
+
+    return cli.main(["bench", *(sys.argv[1:] if argv is None else argv)])
+
+
+def _format_row(r: dict) -> str:
+    extra = ""
+    if "scipy_s" in r:
+        extra = (
+            f"; scipy {r['scipy_s']:.3f} s (cost {r['scipy_final_cost']:.6g}), "
+            f"speed-up {r['speedup_vs_scipy']:.1f}×"
+        )
+    if "peak_memory_gib" in r:
+        extra += f"; peak memory {r['peak_memory_gib']:.2f} GiB"
+    return (
+        f"{r['case']}: B={r['B']} m={r['m']} n={r['n']} E={r['observations']}: "
+        f"{r['median_s'] * 1e3:.1f} ms median, {r['iterations']} iterations, "
+        f"{r['per_iteration_s'] * 1e3:.2f} ms/iteration (FLOP model {r['flop_time_s'] * 1e3:.2f}"
+        f" ms → ratio {r['flop_ratio']:.1f}), cost {r['final_cost']:.6g}, rotation error "
+        f"{r['initial_rotation_error_deg']:.3f}° → {r['rotation_error_deg']:.5f}° "
+        f"(max {r['max_rotation_error_deg']:.5f}°), status {','.join(r['status'])}{extra}"
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""``torchslam register``: multiview registration of PLY range scans, with outputs and a figure.
+
+Reads the scans (in chain order), runs :func:`torchslam.registration.register` with one
+progress line per stage, pair and round, and writes to ``--out``: ``poses.txt`` and
+``poses_chained.txt`` (pose files of :mod:`torchslam.io.trajectories`), ``merged.ply`` (all
+scans in the reference frame, one colour per scan) and ``registration.png`` (needs matplotlib;
+skipped with a message without it). With ``--reference`` (a Stanford ``.conf``) it also prints
+the per-scan error table of :func:`torchslam.registration.error_table`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import math
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from torchslam.cli import _stderr, float_range, int_range, plots, solve_exit_status
+from torchslam.io.ply import write_ply
+from torchslam.io.stanford import read_conf, scan_name, stack
+from torchslam.io.trajectories import write_poses
+from torchslam.registration import icp
+from torchslam.registration.config import RegisterConfig
+from torchslam.registration.pipeline import load_scans, register
+from torchslam.registration.report import error_table
+
+__all__ = ["add_arguments", "main", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``torchslam register``."""
+    parser.add_argument("scans", nargs="+", type=Path, help="PLY scans in chain order (≥ 2)")
+    parser.add_argument(
+        "--reference", type=Path, default=None, help="Stanford .conf alignment to compare with"
+    )
+    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
+    parser.add_argument(
+        "--frame", default=None, help="scan whose frame the poses are in (default: the first)"
+    )
+    parser.add_argument(
+        "--voxel-size",
+        type=float_range(0.0, 1e6, low_open=True),
+        default=0.002,
+        help="finest voxel pitch, scan units (0, 1e6] (0.002)",
+    )
+    parser.add_argument(
+        "--hypotheses", type=int_range(1, 10_000), default=128, help="starts per pair (128)"
+    )
+    parser.add_argument(
+        "--rounds", type=int_range(0, 100), default=4, help="joint rounds at most [0, 100] (4)"
+    )
+    parser.add_argument(
+        "--threads", type=int_range(1, 1024), default=1, help="torch threads [1, 1024] (1)"
+    )
+
+
+def run(
+    args: argparse.Namespace,
+    echo: Callable[[str], None] = print,
+    warn: Callable[[str], None] = _stderr,
+) -> int:
+    """Run ``torchslam register``: progress lines, poses, merged PLY, PNG, optional table.
+
+    Returns the exit status: 0, or 1 when a joint solve ended ``NON_FINITE`` or
+    ``LINEAR_SOLVE_FAILED`` (outputs are still written; :mod:`torchslam.cli`). Without
+    matplotlib the figure is skipped with one ``figure skipped: …`` line through ``warn``.
+
+    Raises:
+        ValueError: bad option values or input files. OSError: unreadable or unwritable files.
+    """
+    if args.threads < 1:
+        raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
+    if not (args.voxel_size > 0 and math.isfinite(args.voxel_size)):
+        raise ValueError(f"--voxel-size must be > 0, got {args.voxel_size}")
+    if args.hypotheses < 1:
+        raise ValueError(f"--hypotheses must be ≥ 1, got {args.hypotheses}")
+    if args.rounds < 0:
+        raise ValueError(f"--rounds must be ≥ 0, got {args.rounds}")
+    if len(args.scans) < 2:
+        raise ValueError(f"need at least 2 scans, got {len(args.scans)}")
+    expected = [scan_name(p) for p in args.scans]
+    frame = expected[0] if args.frame is None else args.frame
+    if frame not in expected:
+        raise ValueError(f"--frame {frame!r} is not among the scans ({', '.join(expected)})")
+    if args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out} exists and is not a directory")
+    config = RegisterConfig(
+        voxel_size=args.voxel_size, hypotheses=args.hypotheses, rounds=args.rounds
+    )
+    threads = torch.get_num_threads()
+    torch.set_num_threads(args.threads)
+    try:
+        return _run(args, config, expected, frame, echo, warn)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(
+    args: argparse.Namespace,
+    config: RegisterConfig,
+    expected: list[str],
+    frame: str,
+    echo: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> int:
+    start = time.perf_counter()
+    reference = None
+    if args.reference is not None:
+        if not args.reference.is_file():
+            raise FileNotFoundError(f"no such reference file: {args.reference}")
+        reference = read_conf(args.reference)
+        missing = [n for n in expected if n not in reference]
+        if missing:
+            raise ValueError(f"{args.reference}: no pose for scan(s) {', '.join(missing)}")
+    echo(f"[1/5] reading {len(args.scans)} scans …")
+    names, clouds = load_scans(args.scans)
+    echo(f"      {', '.join(f'{n} ({len(c)})' for n, c in zip(names, clouds, strict=True))}")
+    stage = iter(("[2/5]", "[3/5]", "[4/5]"))
+
+    def progress(line: str) -> None:
+        prefix = "     " if line.startswith(" ") else next(stage, "     ")
+        echo(f"{prefix} {line}")
+
+    registration = register(names, clouds, config, frame=frame, progress=progress)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    echo(f"[5/5] writing {out} …")
+    write_poses(out / "poses.txt", names, registration.poses, frame=frame)
+    write_poses(out / "poses_chained.txt", names, registration.chained, frame=frame)
+    points, colors = plots.merged_cloud(registration.clouds, registration.poses)
+    legend = [
+        f"scan {n} rgb {' '.join(map(str, c))}"
+        for n, c in zip(names, plots.scan_colors(len(names)), strict=True)
+    ]
+    write_ply(out / "merged.ply", points, colors, coordinate_type="float", comments=legend)
+    written = ["poses.txt", "poses_chained.txt", f"merged.ply ({len(points)} points)"]
+    try:
+        plots.plot_registration(registration, out / "registration.png")
+    except plots.MatplotlibMissingError as error:
+        warn(f"figure skipped: {error}")
+    else:
+        written.append("registration.png")
+    echo(f"      {', '.join(written)}")
+    echo(
+        f"point-to-plane RMS between overlapping scans: chained "
+        f"{registration.residual_chained:.4g} → joint {registration.residual_joint:.4g}"
+    )
+    if reference is not None:
+        reference_poses = stack(reference, names)
+        text, _ = error_table(
+            names,
+            registration.frame,
+            reference_poses,
+            {"chain": registration.chained, "joint": registration.poses},
+        )
+        echo(f"errors vs {args.reference} in the frame of {frame} (mm assumes metres):")
+        echo(text)
+    echo(f"total {time.perf_counter() - start:.1f} s")
+    for pair, result in zip(
+        itertools.pairwise(names), registration.chain.pair_results, strict=True
+    ):
+        if int(result.status) == icp.ICPStatus.TOO_FEW_CORRESPONDENCES:
+            warn(f"warning: pairwise ICP {pair[0]} ← {pair[1]}: {result.reason}")
+    statuses = [info.status for info in registration.refinement.rounds]
+    return solve_exit_status(statuses, warn, "a joint solve")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m torchslam.cli.register``: the same as ``torchslam register``."""
+    from torchslam import cli
+
+    return cli.main(["register", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,60 @@
+"""Registration of range scans: neighbourhoods, ICP, point tracks and the multiview pipeline.
+
+Modules, from the ground up:
+
+- :mod:`~torchslam.registration.neighbors`: voxel grids, nearest neighbours, PCA normals;
+- :mod:`~torchslam.registration.icp`: pairwise ICP (point-to-point, point-to-plane),
+  multistart, coarse to fine, pose chaining;
+- :mod:`~torchslam.registration.tracks`: point tracks across scans (the data association);
+- :mod:`~torchslam.registration.config`: :class:`RegisterConfig`, :func:`default_stages`;
+- :mod:`~torchslam.registration.pipeline`: :func:`register` (pairwise chain, overlapping
+  pairs, joint ICP-SLAM refinement) and its steps;
+- :mod:`~torchslam.registration.report`: consistency residuals and error tables.
+
+Pose files are in :mod:`torchslam.io.trajectories`; the command ``torchslam register`` and
+its figure in :mod:`torchslam.cli.register` and :mod:`torchslam.cli.plots`.
+"""
+
+from torchslam.registration import config, icp, neighbors, pipeline, report, tracks
+from torchslam.registration.config import RegisterConfig, default_stages
+from torchslam.registration.pipeline import (
+    ChainResult,
+    RefineResult,
+    Registration,
+    RoundInfo,
+    boundary_mask,
+    information_matrices,
+    joint_cost,
+    load_scans,
+    overlapping_pairs,
+    refine,
+    register,
+    register_chain,
+)
+from torchslam.registration.report import alignment_residual, error_table, plane_distances
+
+__all__ = [
+    "ChainResult",
+    "RefineResult",
+    "RegisterConfig",
+    "Registration",
+    "RoundInfo",
+    "alignment_residual",
+    "boundary_mask",
+    "config",
+    "default_stages",
+    "error_table",
+    "icp",
+    "information_matrices",
+    "joint_cost",
+    "load_scans",
+    "neighbors",
+    "overlapping_pairs",
+    "pipeline",
+    "plane_distances",
+    "refine",
+    "register",
+    "register_chain",
+    "report",
+    "tracks",
+]

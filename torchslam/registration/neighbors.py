@@ -1,0 +1,191 @@
+"""Point-cloud neighbourhoods: voxel grids, nearest neighbours (KD-tree) and PCA normals.
+
+The preprocessing that ICP (:mod:`torchslam.registration.icp`), the point tracks
+(:mod:`torchslam.registration.tracks`) and the multiview pipeline share. Neighbour queries run
+on the host with scipy's KD-tree (never an O(N·M) distance matrix); they are not meant for
+jacrev or vmap. Clouds are (N, 3) torch tensors or numpy arrays (float32/float64), in any
+frame: nothing here knows about poses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from torchslam import _checks
+
+__all__ = ["estimate_normals", "nearest_neighbors", "voxel_downsample"]
+
+
+def voxel_downsample(points: Tensor, voxel_size: float) -> Tensor:
+    """Replace the points of each occupied voxel by their centroid (vectorized).
+
+    Voxels are the cells of a grid of pitch ``voxel_size`` anchored at the minimum corner of
+    the cloud. The output is sorted by voxel index (lexicographic in (x, y, z) cell
+    coordinates; deterministic). Cell coordinates are computed in the dtype of ``points``
+    and compared exactly, so any ratio of extent to pitch is handled; a pitch so small that
+    the cell coordinates overflow the dtype is refused.
+
+    Args:
+        points: cloud, shape (N, 3), N ≥ 0, finite; a torch tensor or a numpy array
+            (float32/float64).
+        voxel_size: grid pitch, a finite number > 0, in the units of ``points``.
+
+    Returns:
+        Centroids, shape (M, 3) with M ≤ N, same dtype and device as ``points``.
+    """
+    fn = "voxel_downsample"
+    points = _checks.as_points(fn, "points", points)
+    voxel = _checks.check_real(fn, "voxel_size", voxel_size, low=0.0, low_open=True)
+    return _downsample(fn, points, voxel)
+
+
+# Largest number of cells for which an int64 key (cx · ey + cy) · ez + cz cannot overflow.
+_MAX_INT_CELLS = 2**62
+
+
+def _downsample(fn: str, points: Tensor, voxel: float) -> Tensor:
+    """voxel_downsample on checked arguments (``fn`` names the public function)."""
+    if points.shape[0] == 0:
+        return points.clone()
+    low = points.amin(0)
+    cells = torch.floor((points - low) / voxel)
+    top = cells.amax(0).tolist()  # one host sync (torch.unique syncs anyway)
+    if not all(math.isfinite(c) for c in top):
+        _checks.as_points(fn, "points", points, finite=True)  # NaN/Inf (validation off)
+        extent = (points.amax(0) - low).tolist()
+        raise ValueError(
+            f"{fn}: argument 'voxel_size' = {voxel:g} is too small for the extent "
+            f"{[f'{e:g}' for e in extent]} of 'points': the cell coordinates overflow "
+            f"{points.dtype}"
+        )
+    if math.prod(int(c) + 1 for c in top) <= _MAX_INT_CELLS:
+        index = cells.to(torch.int64)
+        extent_y, extent_z = int(top[1]) + 1, int(top[2]) + 1
+        key = (index[:, 0] * extent_y + index[:, 1]) * extent_z + index[:, 2]
+        _, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
+    else:
+        # More cells than an int64 key can number: compare the (exact, float) cell rows.
+        _, inverse, counts = torch.unique(cells, dim=0, return_inverse=True, return_counts=True)
+    sums = points.new_zeros(counts.shape[0], 3).index_add_(0, inverse, points)
+    return sums / counts[:, None].to(points.dtype)
+
+
+def _host(fn: str, name: str, points: Tensor) -> np.ndarray:
+    """Points as a float64 numpy array (N, 3); refuses NaN/Inf, which the KD-tree cannot hold.
+
+    Always checked (not only with validation on): the KD-tree code runs on the host anyway.
+    """
+    array = points.detach().reshape(-1, 3).cpu().numpy().astype(np.float64, copy=False)
+    if not np.isfinite(array).all():
+        bad = ~np.isfinite(array)
+        first = np.unravel_index(int(np.flatnonzero(bad)[0]), tuple(points.shape))
+        raise ValueError(
+            f"{fn}: argument '{name}' contains {int(bad.sum())} non-finite value(s) (NaN or "
+            f"Inf), first at index {tuple(int(i) for i in first)}"
+        )
+    return array
+
+
+def _tree(fn: str, name: str, points: Tensor) -> cKDTree:
+    return cKDTree(_host(fn, name, points))
+
+
+def nearest_neighbors(
+    query: Tensor, reference: Tensor, max_distance: float | None = None
+) -> tuple[Tensor, Tensor]:
+    """Nearest reference point of every query point, with a KD-tree (scipy cKDTree).
+
+    Args:
+        query: points, shape (..., 3), finite; a torch tensor or a numpy array
+            (float32/float64).
+        reference: points, shape (M, 3), M ≥ 1, finite, same dtype as ``query``.
+        max_distance: if given, a number > 0 (``inf`` means no bound): neighbours farther
+            than this are reported as missing.
+
+    Returns:
+        ``(distances, indices)``, each of shape (...); distances in ``query``'s dtype,
+        indices int64. A missing neighbour has distance ``inf`` and index −1.
+    """
+    fn = "nearest_neighbors"
+    like = _checks.first_tensor(query, reference)
+    query = _checks.as_points(fn, "query", query, like=like, cloud=False, finite=False)
+    reference = _checks.as_points(fn, "reference", reference, like=like, min_points=1, finite=False)
+    _checks.check_same_kind(fn, query=query, reference=reference)
+    if max_distance is not None:
+        max_distance = _checks.check_real(
+            fn, "max_distance", max_distance, low=0.0, low_open=True, allow_inf=True
+        )
+    tree = _tree(fn, "reference", reference)
+    return _query(tree, query, max_distance, fn=fn, name="query")
+
+
+def _query(
+    tree: cKDTree,
+    query: Tensor,
+    max_distance: float | None,
+    k: int = 1,
+    *,
+    fn: str = "icp",
+    name: str = "source",
+) -> tuple[Tensor, Tensor]:
+    """k nearest neighbours of ``query`` (..., 3) in ``tree``; ``fn``/``name`` for messages
+    about non-finite query points (moved clouds whose coordinates overflowed)."""
+    flat = _host(fn, name, query)
+    bound = np.inf if max_distance is None else float(max_distance)
+    distance, index = tree.query(flat, k=k, distance_upper_bound=bound)
+    index = np.where(np.isfinite(distance), index, -1)
+    shape = (*query.shape[:-1], k) if k > 1 else query.shape[:-1]
+    distance_t = torch.from_numpy(np.asarray(distance)).to(query.dtype).reshape(shape)
+    index_t = torch.from_numpy(np.asarray(index, dtype=np.int64)).reshape(shape)
+    return distance_t.to(query.device), index_t.to(query.device)
+
+
+def estimate_normals(
+    points: Tensor, neighbors: int = 16, viewpoint: Tensor | None = None
+) -> Tensor:
+    """Unit surface normals by PCA over the k nearest neighbours of each point.
+
+    The normal is the eigenvector of the smallest eigenvalue of the neighbourhood covariance.
+    Its sign is arbitrary unless ``viewpoint`` is given, in which case every normal is flipped
+    to point towards it (e.g. the scanner position).
+
+    Args:
+        points: cloud, shape (N, 3), N ≥ 3, finite; a torch tensor or a numpy array
+            (float32/float64).
+        neighbors: k (an int), the neighbourhood size including the point itself,
+            3 ≤ k ≤ N.
+        viewpoint: optional position, shape (3,), finite, same dtype as ``points``.
+
+    Returns:
+        Normals, shape (N, 3), unit length, same dtype and device as ``points``.
+    """
+    fn = "estimate_normals"
+    points = _checks.as_points(fn, "points", points, min_points=3, finite=False)
+    k = _checks.check_int(fn, "neighbors", neighbors, minimum=3, maximum=points.shape[0])
+    if viewpoint is not None:
+        viewpoint = _checks.as_points(fn, "viewpoint", viewpoint, like=points, cloud=False)
+        if viewpoint.shape != (3,):
+            raise ValueError(
+                f"{fn}: argument 'viewpoint' must have shape (3,), got {tuple(viewpoint.shape)}"
+            )
+        _checks.check_same_kind(fn, points=points, viewpoint=viewpoint)
+    return _normals(fn, points, k, viewpoint)
+
+
+def _normals(fn: str, points: Tensor, k: int, viewpoint: Tensor | None) -> Tensor:
+    """estimate_normals on checked arguments (``fn`` names the public function)."""
+    _, index = _query(_tree(fn, "points", points), points, None, k=k, fn=fn, name="points")
+    local = points[index]  # (N, k, 3)
+    centred = local - local.mean(-2, keepdim=True)
+    covariance = centred.transpose(-1, -2) @ centred
+    _, vectors = torch.linalg.eigh(covariance)  # ascending eigenvalues
+    normals = vectors[..., 0]
+    if viewpoint is not None:
+        facing = ((viewpoint - points) * normals).sum(-1, keepdim=True)
+        normals = torch.where(facing < 0, -normals, normals)
+    return normals
