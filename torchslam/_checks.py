@@ -82,6 +82,9 @@ def check_tensor(
             "convert it with .double() (recommended) or .float()"
         )
     nt = len(trailing)
+    shape = x.shape
+    if len(shape) >= nt + min_batch_dims and (nt == 0 or shape[-nt:] == tuple(trailing)):
+        return x  # the common case; the message below is built only on failure (hot paths)
     if dims is None or len(dims) != min_batch_dims:
         dims = ["B"] + [f"d{k}" for k in range(1, min_batch_dims)] if min_batch_dims else []
     expected = _shape_str(["..."] * (1 if min_batch_dims == 0 else 0) + list(dims) + list(trailing))
@@ -102,6 +105,11 @@ def check_tensor(
 
 def check_same_kind(fn: str, **tensors: Tensor) -> None:
     """Reject mixed dtypes or devices among the named tensors (no silent casting)."""
+    values = iter(tensors.values())
+    first = next(values)
+    dtype, device = first.dtype, first.device
+    if all(t.dtype == dtype and t.device == device for t in values):
+        return  # the common case, without building the lists below (hot paths)
     items = list(tensors.items())
     name0, t0 = items[0]
     for name, t in items[1:]:
@@ -137,8 +145,10 @@ def orthonormality_tolerance(dtype: torch.dtype) -> float:
 
 def check_rotation(fn: str, name: str, R: Tensor) -> None:
     """Raise ValueError if ``R`` (..., 3, 3) is not a rotation (orthonormal with det +1)."""
+    if not value_checks_active():
+        return
     check_finite(fn, name, R)
-    if not value_checks_active() or R.numel() == 0:
+    if R.numel() == 0:
         return
     Rd = R.detach()
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
@@ -159,8 +169,10 @@ def check_rotation(fn: str, name: str, R: Tensor) -> None:
 
 def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
     """Raise ValueError if quaternions ``q`` (..., 4) are not unit norm."""
+    if not value_checks_active():
+        return
     check_finite(fn, name, q)
-    if not value_checks_active() or q.numel() == 0:
+    if q.numel() == 0:
         return
     norm = torch.linalg.vector_norm(q.detach(), dim=-1)
     tol = orthonormality_tolerance(q.dtype)
@@ -176,9 +188,11 @@ def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
 
 def check_pose_matrix(fn: str, name: str, T: Tensor) -> None:
     """Raise ValueError if ``T`` (..., 4, 4) is not a rigid transform [[R, t], [0, 1]]."""
+    if not value_checks_active():
+        return  # before slicing T: this is on hot paths under validation(False)
     check_finite(fn, name, T)
     check_rotation(fn, name, T[..., :3, :3])
-    if not value_checks_active() or T.numel() == 0:
+    if T.numel() == 0:
         return
     bottom = T.detach()[..., 3, :]
     expected = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
@@ -226,8 +240,12 @@ def check_broadcast(fn: str, **batch_shapes: Sequence[int]) -> tuple[int, ...]:
     Returns:
         The broadcast batch shape.
     """
+    shapes = list(batch_shapes.values())
+    first = shapes[0]
+    if all(s == first for s in shapes):
+        return tuple(first)  # the common case, without torch.broadcast_shapes (hot paths)
     try:
-        return tuple(torch.broadcast_shapes(*(tuple(s) for s in batch_shapes.values())))
+        return tuple(torch.broadcast_shapes(*(tuple(s) for s in shapes)))
     except RuntimeError:
         described = " and ".join(
             f"'{name}' with batch shape {tuple(shape)}" for name, shape in batch_shapes.items()

@@ -15,12 +15,18 @@ overflow although the input is finite when value checks are active (see
 :func:`torchslam.validation`). Finite input never gives NaN: for |ω| beyond 2²⁰ (float64) /
 2¹⁰ (float32) the formulas switch to a unit-axis form that cannot overflow (see
 :class:`_Polar`), with the angle reduced modulo 2π (exact up to the input's resolution).
+
+``form="fast"`` (``exp``, ``jl``, ``jr``, ``jl_inv``, ``jr_inv``) skips that switch: the
+θ-power formulas only, bitwise equal to the default ``form="robust"`` for |ω| ≤ 2²⁰ (float64;
+2¹⁰ in float32) and cheaper (fewer kernels), for hot paths whose input is bounded (the solver's
+iterates and steps); beyond the switch it may lose accuracy, and it overflows for |ω| ≳ 1e154.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -42,6 +48,13 @@ __all__ = [
     "project",
     "vee",
 ]
+
+Form = Literal["robust", "fast"]
+
+
+def _check_form(fn: str, form: object) -> None:
+    if form != "robust" and form != "fast":
+        raise ValueError(f"{fn}: argument 'form' must be 'robust' or 'fast', got {form!r}")
 
 
 def _hat(omega: Tensor) -> Tensor:
@@ -247,7 +260,7 @@ def _axis_angle_to_quaternion(omega: Tensor) -> Tensor:
     return torch.cat((w[..., None], scale[..., None] * p.w), dim=-1)
 
 
-def exp(omega: Tensor) -> Tensor:
+def exp(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Exponential map so(3) → SO(3), Rodrigues' formula (seed eq. L4.1).
 
     R = I + (sin θ / θ) [ω]× + ((1 − cos θ) / θ²) [ω]×², θ = |ω|, with series branches near 0.
@@ -255,13 +268,16 @@ def exp(omega: Tensor) -> Tensor:
 
     Args:
         omega: rotation vectors (axis · angle, radians), shape (..., 3).
+        form: "robust" (finite for every finite ω) or "fast" (the θ-power form only: the same
+            bits up to |ω| = 2²⁰, cheaper; see the module docstring).
 
     Returns:
         Rotation matrices, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.exp", "omega", omega, (3,))
+    _check_form("so3.exp", form)
     _checks.check_finite("so3.exp", "omega", omega)
-    return _exp_robust(omega)
+    return _exp_robust(omega) if form == "robust" else _exp(omega)
 
 
 def _matrix_to_quaternion(R: Tensor) -> Tensor:
@@ -328,8 +344,8 @@ def log(R: Tensor) -> Tensor:
     return _log(R)
 
 
-# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
-# public functions and the manifolds use the _robust forms (bitwise equal up to |ω| = 2²⁰).
+# The θ-power forms _jl and _jl_inv are form="fast" of the public functions (hot paths); the
+# default form="robust" uses the _robust forms (bitwise equal up to |ω| = 2²⁰).
 
 
 def _jl(omega: Tensor) -> Tensor:
@@ -378,7 +394,7 @@ _JL_INV_SINGULAR = (
 )
 
 
-def jl(omega: Tensor) -> Tensor:
+def jl(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Left Jacobian of SO(3), the J of seed eq. L4.3.
 
     J_l(ω) = I + ((1 − cos θ)/θ²) [ω]× + ((θ − sin θ)/θ³) [ω]×², and
@@ -386,30 +402,34 @@ def jl(omega: Tensor) -> Tensor:
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jl", "omega", omega, (3,))
+    _check_form("so3.jl", form)
     _checks.check_finite("so3.jl", "omega", omega)
-    return _jl_robust(omega)
+    return _jl_robust(omega) if form == "robust" else _jl(omega)
 
 
-def jr(omega: Tensor) -> Tensor:
+def jr(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Right Jacobian of SO(3): jr(ω) = jl(−ω); Exp(ω + d) ≈ Exp(ω) · Exp(jr(ω) d).
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jr", "omega", omega, (3,))
+    _check_form("so3.jr", form)
     _checks.check_finite("so3.jr", "omega", omega)
-    return _jl_robust(-omega)
+    return _jl_robust(-omega) if form == "robust" else _jl(-omega)
 
 
-def jl_inv(omega: Tensor) -> Tensor:
+def jl_inv(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Inverse of :func:`jl`: I − ½[ω]× + ((1 − (θ/2)cot(θ/2))/θ²) [ω]×².
 
     Finite for θ < 2π (in particular at θ = π); singular at θ = 2πk, k ≥ 1. When value checks
@@ -417,29 +437,33 @@ def jl_inv(omega: Tensor) -> Tensor:
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jl_inv", "omega", omega, (3,))
+    _check_form("so3.jl_inv", form)
     _checks.check_finite("so3.jl_inv", "omega", omega)
-    result = _jl_inv_robust(omega)
+    result = _jl_inv_robust(omega) if form == "robust" else _jl_inv(omega)
     _checks.check_result_finite("so3.jl_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
     return result
 
 
-def jr_inv(omega: Tensor) -> Tensor:
+def jr_inv(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Inverse of :func:`jr`: jr_inv(ω) = jl_inv(−ω).
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jr_inv", "omega", omega, (3,))
+    _check_form("so3.jr_inv", form)
     _checks.check_finite("so3.jr_inv", "omega", omega)
-    result = _jl_inv_robust(-omega)
+    result = _jl_inv_robust(-omega) if form == "robust" else _jl_inv(-omega)
     _checks.check_result_finite("so3.jr_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
     return result
 
