@@ -69,6 +69,15 @@ def _check_perturbation(owner: str, perturbation: object) -> None:
         )
 
 
+def _unchecked(f: Callable[..., Tensor], *args: Tensor) -> Tensor:
+    """f(*args) with value checks off: the private math runs after the public checks, and the
+    public ``lie`` functions it calls need not check (and sync) again."""
+    if not _checks.value_checks_active():
+        return f(*args)
+    with _checks.validation(False):
+        return f(*args)
+
+
 def _broadcast_batch(fn: str, **batch_shapes: tuple[int, ...]) -> tuple[int, ...]:
     """Broadcast the leading (batch) shapes of named arguments; ValueError naming them if not."""
     return _checks.check_broadcast(fn, **batch_shapes)
@@ -114,7 +123,7 @@ class Manifold(abc.ABC):
         """
         fn = self._fn("plus")
         self._check_plus_arguments(fn, x, delta)
-        result = self._plus(x, delta)
+        result = _unchecked(self._plus, x, delta)
         _checks.check_result_finite(fn, result, x=x, delta=delta)
         return result
 
@@ -135,7 +144,7 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, y=self._batch_shape(y), x=self._batch_shape(x))
         self._check_point_values(fn, "y", y)
         self._check_point_values(fn, "x", x)
-        result = self._minus(y, x)
+        result = _unchecked(self._minus, y, x)
         _checks.check_result_finite(fn, result, y=y, x=x)
         return result
 
@@ -152,7 +161,7 @@ class Manifold(abc.ABC):
         fn = self._fn("plus_jacobian")
         self._check_point_metadata(fn, "x", x)
         self._check_point_values(fn, "x", x)
-        result = self._plus_jacobian(x)
+        result = _unchecked(self._plus_jacobian, x)
         _checks.check_result_finite(fn, result, x=x)
         return result
 
@@ -171,7 +180,7 @@ class Manifold(abc.ABC):
         fn = self._fn("minus_jacobian")
         self._check_point_metadata(fn, "x", x)
         self._check_point_values(fn, "x", x)
-        result = self._minus_jacobian(x)
+        result = _unchecked(self._minus_jacobian, x)
         _checks.check_result_finite(fn, result, x=x)
         return result
 
@@ -203,7 +212,7 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, x=self._batch_shape(x), J_r_ambient=tuple(J_r_ambient.shape[:-2]))
         self._check_point_values(fn, "x", x)
         _checks.check_finite(fn, "J_r_ambient", J_r_ambient)
-        result = self._right_multiply_by_plus_jacobian(x, J_r_ambient)
+        result = _unchecked(self._right_multiply_by_plus_jacobian, x, J_r_ambient)
         _checks.check_result_finite(fn, result, x=x, J_r_ambient=J_r_ambient)
         return result
 
@@ -313,7 +322,7 @@ def _se3_generators(like: Tensor) -> Tensor:
 
 def _two_vee(M: Tensor) -> Tensor:
     """⟨M, hat(e_k)⟩_F = (M21 − M12, M02 − M20, M10 − M01)_k; (..., 3, 3) → (..., 3)."""
-    return 2.0 * so3._vee(M)
+    return 2.0 * so3.vee(M)
 
 
 @dataclass(frozen=True)
@@ -353,8 +362,8 @@ class SE3Matrix(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return x @ se3._exp_robust(delta)
-        return se3._exp_robust(delta) @ x
+            return x @ se3.exp(delta)
+        return se3.exp(delta) @ x
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         R, t = x[..., :3, :3], x[..., :3, 3:]
@@ -367,8 +376,8 @@ class SE3Matrix(Manifold):
             # Y·T⁻¹ = [[R_y Rᵀ, t_y − R_y Rᵀ t], [0, 1]]
             R_rel = R_y @ R.transpose(-1, -2)
             t_rel = t_y - R_rel @ t
-        omega = so3._log(R_rel)
-        v = (so3._jl_inv(omega) @ t_rel).squeeze(-1)  # seed eq. L6
+        omega = so3.log(R_rel)
+        v = (so3.jl_inv(omega, form="fast") @ t_rel).squeeze(-1)  # seed eq. L6, |ω| ≤ π
         return torch.cat((omega, v), dim=-1)
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
@@ -621,13 +630,16 @@ class SE3Tangent(Manifold):
         """
         fn = "SE3Tangent.retract"
         self._check_plus_arguments(fn, x, delta)
+        result = _unchecked(self._retract, x, delta)
+        _checks.check_result_finite(fn, result, x=x, delta=delta)
+        return result
+
+    def _retract(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
             moved = se3.log(se3.exp(x, form="fast") @ se3.exp(delta, form="fast"))
         else:
             moved = se3.log(se3.exp(delta, form="fast") @ se3.exp(x, form="fast"))
-        result = torch.where((delta == 0).all(dim=-1, keepdim=True), x, moved)
-        _checks.check_result_finite(fn, result, x=x, delta=delta)
-        return result
+        return torch.where((delta == 0).all(dim=-1, keepdim=True), x, moved)
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
@@ -636,18 +648,18 @@ class SE3Tangent(Manifold):
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._inverse(se3._exp_robust(x)) @ se3._exp_robust(y))
-        return se3._log(se3._exp_robust(y) @ se3._inverse(se3._exp_robust(x)))
+            return se3.log(se3.inverse(se3.exp(x)) @ se3.exp(y))
+        return se3.log(se3.exp(y) @ se3.inverse(se3.exp(x)))
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl_inv_robust(-x)  # jr_inv(ξ)
-        return se3._jl_inv_robust(x)
+            return se3.jr_inv(x)
+        return se3.jl_inv(x)
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl_robust(-x)  # jr(ξ)
-        return se3._jl_robust(x)
+            return se3.jr(x)
+        return se3.jl(x)
 
 
 # --------------------------------------------------------------------------- jacrev at zero
