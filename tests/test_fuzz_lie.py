@@ -37,9 +37,9 @@ TINY = {F64: 1e-300, F32: 1e-40}  # float32: a subnormal
 
 # ----------------------------------------------------------------------------- the API table
 
-# Argument kinds: vec3 (rotation vectors, points), twist (…, 6), mat3 / mat4 (any matrix),
-# rot (a rotation), pose (a rigid transform), quat (a unit quaternion), t3d (a Transform3d);
-# manifold kinds are resolved per manifold (point, tangent, jac).
+# Argument kinds: vec3 (rotation vectors, points), vec4 (any quaternion), twist (…, 6), mat3 /
+# mat4 (any matrix), rot (a rotation), pose (a rigid transform), quat (a unit quaternion), t3d
+# (a Transform3d); manifold kinds are resolved per manifold (point, tangent, jac).
 STRICT_KINDS = {"rot", "pose", "quat"}
 
 
@@ -84,6 +84,10 @@ _LIE_ARGS: dict[str, tuple[tuple[str, str], ...]] = {
     "convert.matrix_to_quaternion": (("R", "rot"),),
     "convert.pose_from_translation_quaternion": (("t", "vec3"), ("q", "quat")),
     "convert.pose_to_translation_quaternion": (("T", "pose"),),
+    "convert.quaternion_conjugate": (("q", "vec4"),),
+    "convert.quaternion_left_matrix": (("q", "vec4"),),
+    "convert.quaternion_multiply": (("q", "vec4"), ("p", "vec4")),
+    "convert.quaternion_right_matrix": (("q", "vec4"),),
     "convert.quaternion_to_axis_angle": (("q", "quat"),),
     "convert.quaternion_to_matrix": (("q", "quat"),),
     "convert.to_transform3d": (("T", "pose"),),
@@ -183,6 +187,8 @@ def _valid(kind: str, batch, dtype, rng, manifold=None):
         return _rotations(rng, batch, dtype)
     if kind == "pose":
         return se3._exp(_randn(rng, (*batch, 6), F64)).to(dtype)
+    if kind == "vec4":  # any quaternion
+        return _randn(rng, (*batch, 4), dtype)
     if kind == "quat":
         q = _randn(rng, (*batch, 4), F64)
         return (q / q.norm(dim=-1, keepdim=True)).to(dtype)

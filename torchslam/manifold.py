@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
-from torchslam.lie import _series, se3, so3
+from torchslam.lie import convert, se3, so3
 
 __all__ = [
     "Euclidean",
@@ -430,73 +430,6 @@ class SE3Matrix(Manifold):
 # --------------------------------------------------------------------------- SO(3) quaternions
 
 
-def _quaternion_multiply(q: Tensor, p: Tensor) -> Tensor:
-    """Hamilton product q ⊗ p of (w, x, y, z) quaternions; leading dims broadcast."""
-    q_w, q_v = q[..., :1], q[..., 1:]
-    p_w, p_v = p[..., :1], p[..., 1:]
-    q_v, p_v = torch.broadcast_tensors(q_v, p_v)
-    w = q_w * p_w - (q_v * p_v).sum(-1, keepdim=True)
-    v = q_w * p_v + p_w * q_v + torch.linalg.cross(q_v, p_v, dim=-1)
-    return torch.cat((w, v), dim=-1)
-
-
-def _quaternion_conjugate(q: Tensor) -> Tensor:
-    return torch.cat((q[..., :1], -q[..., 1:]), dim=-1)
-
-
-def _quaternion_exp(delta: Tensor) -> Tensor:
-    """Exp of a rotation vector as a unit quaternion (cos(θ/2), sin(θ/2)/θ · δ), exact at θ = 0."""
-    # With φ = θ/2: cos φ = 1 − φ²·b(φ²) and sin φ / θ = a(φ²)/2, from the series-safe
-    # Rodrigues coefficients (a, b) = (sin φ/φ, (1 − cos φ)/φ²); a unit-axis form for huge θ.
-    return so3._axis_angle_to_quaternion(delta)
-
-
-def _quaternion_log(q: Tensor) -> Tensor:
-    """Rotation vector of a unit quaternion, angle in [0, π] (q and −q give the same result)."""
-    q = torch.where(q[..., :1] < 0, -q, q)
-    w, v = q[..., 0], q[..., 1:]
-    n2 = (v * v).sum(-1)
-    # θ = 2 atan2(|v|, w), ω = θ v/|v|. Below θ = π/2 (|v| < w) atan_ratio_squared is exact at
-    # |v| = 0 and reads |v|² (first and second derivatives finite there); above, atan2(|v|, w)/|v|
-    # is safe (|v| ≥ 1/√2). Double where: each branch sees safe values, so gradients stay
-    # finite at θ = 0 and at θ = π (w = 0, where the series would see (|v|/w)² = ∞).
-    large = n2 >= w * w
-    n_large = torch.sqrt(torch.where(large, n2, torch.ones_like(n2)))
-    ratio_large = torch.atan2(n_large, w) / n_large
-    ratio_small = _series.atan_ratio_squared(
-        torch.where(large, torch.zeros_like(n2), n2), torch.where(large, torch.ones_like(w), w)
-    )
-    return (2.0 * torch.where(large, ratio_large, ratio_small))[..., None] * v
-
-
-def _quaternion_left_matrix(q: Tensor) -> Tensor:
-    """[q]_L with q ⊗ p = [q]_L p (Solà, eq. 18), shape (..., 4, 4)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), dim=-1),
-            torch.stack((x, w, -z, y), dim=-1),
-            torch.stack((y, z, w, -x), dim=-1),
-            torch.stack((z, -y, x, w), dim=-1),
-        ),
-        dim=-2,
-    )
-
-
-def _quaternion_right_matrix(q: Tensor) -> Tensor:
-    """[q]_R with p ⊗ q = [q]_R p (Solà, eq. 19), shape (..., 4, 4)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), dim=-1),
-            torch.stack((x, w, z, -y), dim=-1),
-            torch.stack((y, -z, w, x), dim=-1),
-            torch.stack((z, y, -x, w), dim=-1),
-        ),
-        dim=-2,
-    )
-
-
 @dataclass(frozen=True)
 class SO3Quaternion(Manifold):
     """SO(3) stored as unit quaternions q = (w, x, y, z) (Hamilton, as in Ceres), tangent R³.
@@ -535,26 +468,28 @@ class SO3Quaternion(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return _quaternion_multiply(x, _quaternion_exp(delta))
-        return _quaternion_multiply(_quaternion_exp(delta), x)
+            return convert.quaternion_multiply(x, convert.axis_angle_to_quaternion(delta))
+        return convert.quaternion_multiply(convert.axis_angle_to_quaternion(delta), x)
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return _quaternion_log(_quaternion_multiply(_quaternion_conjugate(x), y))
-        return _quaternion_log(_quaternion_multiply(y, _quaternion_conjugate(x)))
+            relative = convert.quaternion_multiply(convert.quaternion_conjugate(x), y)
+        else:
+            relative = convert.quaternion_multiply(y, convert.quaternion_conjugate(x))
+        return convert.quaternion_to_axis_angle(relative)  # angle ≤ π (q ≡ −q)
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         # ∂(q ⊗ δq)/∂δq · ∂δq/∂δ = [q]_L · ½[0; I₃]: columns 1..3 of [q]_L, halved.
         if self.perturbation == "right":
-            return 0.5 * _quaternion_left_matrix(x)[..., :, 1:]
-        return 0.5 * _quaternion_right_matrix(x)[..., :, 1:]
+            return 0.5 * convert.quaternion_left_matrix(x)[..., :, 1:]
+        return 0.5 * convert.quaternion_right_matrix(x)[..., :, 1:]
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         # Log(u) = 2 v/w + O(|v|²) at u = (1, 0): d minus = 2 · (vector rows of d(q* ⊗ y)).
-        x_conjugate = _quaternion_conjugate(x)
+        x_conjugate = convert.quaternion_conjugate(x)
         if self.perturbation == "right":
-            return 2.0 * _quaternion_left_matrix(x_conjugate)[..., 1:, :]
-        return 2.0 * _quaternion_right_matrix(x_conjugate)[..., 1:, :]
+            return 2.0 * convert.quaternion_left_matrix(x_conjugate)[..., 1:, :]
+        return 2.0 * convert.quaternion_right_matrix(x_conjugate)[..., 1:, :]
 
 
 # --------------------------------------------------------------------------- SE(3) twists

@@ -249,17 +249,6 @@ def _exp_robust(omega: Tensor) -> Tensor:
     return _skew_quadratic(p.w, p.theta2, a, b)
 
 
-def _axis_angle_to_quaternion(omega: Tensor) -> Tensor:
-    """Unit quaternion (cos(θ/2), sin(θ/2)·ω/θ) of rotation vectors (..., 3), exact at θ = 0."""
-    p = _polar(omega)
-    # With x = θ/2: sin(x)/x and (1 − cos x)/x² are the Rodrigues coefficients at x².
-    half2 = 0.25 * p.theta2
-    a, b = _series.sinc_coefficients(half2)
-    w = torch.where(p.large, p.cos_half, 1.0 - half2 * b)
-    scale = torch.where(p.large, p.sin_half, 0.5 * a)
-    return torch.cat((w[..., None], scale[..., None] * p.w), dim=-1)
-
-
 def exp(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Exponential map so(3) → SO(3), Rodrigues' formula (seed eq. L4.1).
 
@@ -280,49 +269,9 @@ def exp(omega: Tensor, *, form: Form = "robust") -> Tensor:
     return _exp_robust(omega) if form == "robust" else _exp(omega)
 
 
-def _matrix_to_quaternion(R: Tensor) -> Tensor:
-    """Shepperd's method, (w, x, y, z), w ≥ 0; vmap-safe and gradient-safe.
-
-    All four candidates are computed; the one built from the largest of
-    (1 + tr, 1 + 2R00 − tr, …) is selected. That value is ≥ 1 for a rotation, so clamping
-    the square root's argument at 0.25 changes only the discarded candidates (and keeps
-    their gradients finite).
-    """
-    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    diag = torch.stack(
-        (
-            1.0 + m00 + m11 + m22,
-            1.0 + m00 - m11 - m22,
-            1.0 - m00 + m11 - m22,
-            1.0 - m00 - m11 + m22,
-        ),
-        dim=-1,
-    )
-    root = torch.sqrt(diag.clamp_min(0.25))  # = 2·|component| for the selected candidate
-    r0, r1, r2, r3 = root.unbind(-1)
-    candidates = torch.stack(
-        (
-            torch.stack((r0 * r0, m21 - m12, m02 - m20, m10 - m01), dim=-1) / (2.0 * r0[..., None]),
-            torch.stack((m21 - m12, r1 * r1, m01 + m10, m02 + m20), dim=-1) / (2.0 * r1[..., None]),
-            torch.stack((m02 - m20, m01 + m10, r2 * r2, m12 + m21), dim=-1) / (2.0 * r2[..., None]),
-            torch.stack((m10 - m01, m02 + m20, m12 + m21, r3 * r3), dim=-1) / (2.0 * r3[..., None]),
-        ),
-        dim=-2,
-    )
-    best = diag.argmax(dim=-1)
-    q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
-    return torch.where(q[..., :1] < 0, -q, q)
-
-
 def _log(R: Tensor) -> Tensor:
-    q = _matrix_to_quaternion(R)
-    w, v = q[..., 0], q[..., 1:]
-    # ω = θ v / |v| with θ = 2 atan2(|v|, w); the ratio is exact at |v| = 0. It is read off
-    # |v|², never |v| (whose derivative is 0/0 at v = 0), so that second derivatives (a
-    # double backward, e.g. a Hessian-vector product through the solver) are finite at R = I.
-    return (2.0 * _series.atan_ratio_squared((v * v).sum(-1), w))[..., None] * v
+    # Through the unit quaternion: the one quaternion code is in convert.
+    return convert._quaternion_to_axis_angle(convert._matrix_to_quaternion(R))
 
 
 def log(R: Tensor) -> Tensor:
@@ -543,3 +492,8 @@ def project(M: Tensor) -> Tensor:
     fix = torch.ones(*M.shape[:-2], 3, dtype=M.dtype, device=M.device)
     fix = torch.cat((fix[..., :2], det[..., None].sign()), dim=-1)
     return (U * fix[..., None, :]) @ Vh
+
+
+# convert holds the quaternion code that log uses; it imports this module, hence the import here
+# at the end (either module may be imported first).
+from torchslam.lie import convert  # noqa: E402
