@@ -22,14 +22,19 @@ from torchslam.posegraph.between import between_jacobians
 F64 = torch.float64
 
 
-def _hard_poses(generator: torch.Generator) -> Tensor:
-    """Poses over every hard angle × translation magnitude, shape (N, 4, 4), float64."""
+def _principal_twists(generator: torch.Generator) -> Tensor:
+    """Twists over every hard angle (≤ π) × translation magnitude, shape (N, 6), float64."""
     omega = rotation_vectors_with_angles(HARD_ANGLES, generator, per_angle=2)
     rows = []
     for scale in HARD_TRANSLATIONS:
         v = scale * torch.randn(omega.shape[0], 3, generator=generator, dtype=F64)
         rows.append(torch.cat((omega, v), dim=-1))
-    return se3.exp(torch.cat(rows))
+    return torch.cat(rows)
+
+
+def _hard_poses(generator: torch.Generator) -> Tensor:
+    """Poses over every hard angle × translation magnitude, shape (N, 4, 4), float64."""
+    return se3.exp(_principal_twists(generator))
 
 
 def _between(T_i: Tensor, T_j: Tensor, Z: Tensor) -> Tensor:
@@ -175,15 +180,6 @@ def test_bad_arguments_are_named():
 
 
 # --------------------------------------------------------------------------- SE3Tangent.retract
-
-
-def _principal_twists(generator: torch.Generator) -> Tensor:
-    omega = rotation_vectors_with_angles(HARD_ANGLES, generator, per_angle=2)
-    rows = []
-    for scale in HARD_TRANSLATIONS:
-        v = scale * torch.randn(omega.shape[0], 3, generator=generator, dtype=F64)
-        rows.append(torch.cat((omega, v), dim=-1))
-    return torch.cat(rows)
 
 
 @pytest.mark.parametrize("perturbation", ["right", "left"])

@@ -481,15 +481,15 @@ class SO3Quaternion(Manifold):
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         # ∂(q ⊗ δq)/∂δq · ∂δq/∂δ = [q]_L · ½[0; I₃]: columns 1..3 of [q]_L, halved.
         if self.perturbation == "right":
-            return 0.5 * convert.quaternion_left_matrix(x)[..., :, 1:]
-        return 0.5 * convert.quaternion_right_matrix(x)[..., :, 1:]
+            return 0.5 * convert.quaternion_product_matrix(x, "left")[..., :, 1:]
+        return 0.5 * convert.quaternion_product_matrix(x, "right")[..., :, 1:]
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         # Log(u) = 2 v/w + O(|v|²) at u = (1, 0): d minus = 2 · (vector rows of d(q* ⊗ y)).
         x_conjugate = convert.quaternion_conjugate(x)
         if self.perturbation == "right":
-            return 2.0 * convert.quaternion_left_matrix(x_conjugate)[..., 1:, :]
-        return 2.0 * convert.quaternion_right_matrix(x_conjugate)[..., 1:, :]
+            return 2.0 * convert.quaternion_product_matrix(x_conjugate, "left")[..., 1:, :]
+        return 2.0 * convert.quaternion_product_matrix(x_conjugate, "right")[..., 1:, :]
 
 
 # --------------------------------------------------------------------------- SE(3) twists

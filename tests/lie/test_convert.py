@@ -341,8 +341,8 @@ def test_quaternion_algebra_matches_rotation_matrices(shape, generator):
     assert _max_err(R(convert.quaternion_multiply(q, p)), R(q) @ R(p)) <= 1e-14
     assert _max_err(convert.quaternion_multiply(q, p), _hamilton_product(q, p)) <= 1e-15
     assert _max_err(R(convert.quaternion_conjugate(q)), R(q).transpose(-1, -2)) <= 1e-14
-    left = (convert.quaternion_left_matrix(q) @ p[..., None])[..., 0]
-    right = (convert.quaternion_right_matrix(p) @ q[..., None])[..., 0]
+    left = (convert.quaternion_product_matrix(q, "left") @ p[..., None])[..., 0]
+    right = (convert.quaternion_product_matrix(p, "right") @ q[..., None])[..., 0]
     assert _max_err(left, convert.quaternion_multiply(q, p)) <= 1e-15
     assert _max_err(right, convert.quaternion_multiply(q, p)) <= 1e-15
 
@@ -355,6 +355,8 @@ def test_quaternion_multiply_broadcasts_and_names_itself():
         convert.quaternion_multiply(q, p[..., :3])
     with pytest.raises(ValueError, match=r"convert\.quaternion_multiply: the leading \(batch\)"):
         convert.quaternion_multiply(p, torch.zeros(4, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"quaternion_product_matrix: argument 'side' must be"):
+        convert.quaternion_product_matrix(q, "up")
 
 
 def test_one_quaternion_log_for_so3_log_and_the_quaternion_manifold(generator):

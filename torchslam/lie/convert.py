@@ -3,7 +3,7 @@
 This module holds all of torchslam's quaternion code: ``so3.log`` goes through
 :func:`matrix_to_quaternion` and :func:`quaternion_to_axis_angle`, and the
 ``manifold.SO3Quaternion`` manifold through the quaternion algebra below (Hamilton product,
-conjugate, the left/right product matrices).
+conjugate, the product matrices).
 
 Conventions (kept across torchslam):
 - Quaternions are Hamilton, stored (w, x, y, z), real part first, unit norm. q and −q are the
@@ -26,6 +26,8 @@ What comes from pytorch-kinematics and what does not (checked by ``tests/lie/tes
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 from pytorch_kinematics.transforms import Transform3d
 from pytorch_kinematics.transforms import rotation_conversions as _pk_rotation
@@ -43,9 +45,8 @@ __all__ = [
     "pose_from_translation_quaternion",
     "pose_to_translation_quaternion",
     "quaternion_conjugate",
-    "quaternion_left_matrix",
     "quaternion_multiply",
-    "quaternion_right_matrix",
+    "quaternion_product_matrix",
     "quaternion_to_axis_angle",
     "quaternion_to_matrix",
     "to_transform3d",
@@ -300,47 +301,33 @@ def quaternion_conjugate(q: Tensor) -> Tensor:
     return torch.cat((q[..., :1], -q[..., 1:]), dim=-1)
 
 
-def quaternion_left_matrix(q: Tensor) -> Tensor:
-    """[q]_L, the matrix of left multiplication: q ⊗ p = [q]_L p (Solà, eq. 18).
+def quaternion_product_matrix(q: Tensor, side: Literal["left", "right"] = "left") -> Tensor:
+    """The matrix of multiplication by q: [q]_L with q ⊗ p = [q]_L p (``side="left"``), or
+    [q]_R with p ⊗ q = [q]_R p (``side="right"``) (Solà, eqs. 18-19).
+
+    [q]_L = w·I + [[0, −vᵀ], [v, [v]×]] and [q]_R = w·I + [[0, −vᵀ], [v, −[v]×]] for q = (w, v).
 
     Args:
         q: quaternions (w, x, y, z), shape (..., 4).
+        side: "left" or "right".
 
     Returns:
         Matrices, shape (..., 4, 4), acting on (w, x, y, z) column vectors.
     """
-    _checks.check_tensor("convert.quaternion_left_matrix", "q", q, (4,))
-    _checks.check_finite("convert.quaternion_left_matrix", "q", q)
+    fn = "convert.quaternion_product_matrix"
+    _checks.check_tensor(fn, "q", q, (4,))
+    if side != "left" and side != "right":
+        raise ValueError(f"{fn}: argument 'side' must be 'left' or 'right', got {side!r}")
+    _checks.check_finite(fn, "q", q)
     w, x, y, z = q.unbind(-1)
+    sign = 1.0 if side == "left" else -1.0
+    sx, sy, sz = sign * x, sign * y, sign * z
     return torch.stack(
         (
             torch.stack((w, -x, -y, -z), dim=-1),
-            torch.stack((x, w, -z, y), dim=-1),
-            torch.stack((y, z, w, -x), dim=-1),
-            torch.stack((z, -y, x, w), dim=-1),
-        ),
-        dim=-2,
-    )
-
-
-def quaternion_right_matrix(q: Tensor) -> Tensor:
-    """[q]_R, the matrix of right multiplication: p ⊗ q = [q]_R p (Solà, eq. 19).
-
-    Args:
-        q: quaternions (w, x, y, z), shape (..., 4).
-
-    Returns:
-        Matrices, shape (..., 4, 4), acting on (w, x, y, z) column vectors.
-    """
-    _checks.check_tensor("convert.quaternion_right_matrix", "q", q, (4,))
-    _checks.check_finite("convert.quaternion_right_matrix", "q", q)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), dim=-1),
-            torch.stack((x, w, z, -y), dim=-1),
-            torch.stack((y, -z, w, x), dim=-1),
-            torch.stack((z, y, -x, w), dim=-1),
+            torch.stack((x, w, -sz, sy), dim=-1),
+            torch.stack((y, sz, w, -sx), dim=-1),
+            torch.stack((z, -sy, sx, w), dim=-1),
         ),
         dim=-2,
     )
