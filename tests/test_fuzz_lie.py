@@ -37,9 +37,9 @@ TINY = {F64: 1e-300, F32: 1e-40}  # float32: a subnormal
 
 # ----------------------------------------------------------------------------- the API table
 
-# Argument kinds: vec3 (rotation vectors, points), twist (…, 6), mat3 / mat4 (any matrix),
-# rot (a rotation), pose (a rigid transform), quat (a unit quaternion), t3d (a Transform3d);
-# manifold kinds are resolved per manifold (point, tangent, jac).
+# Argument kinds: vec3 (rotation vectors, points), vec4 (any quaternion), twist (…, 6), mat3 /
+# mat4 (any matrix), rot (a rotation), pose (a rigid transform), quat (a unit quaternion), t3d
+# (a Transform3d); manifold kinds are resolved per manifold (point, tangent, jac).
 STRICT_KINDS = {"rot", "pose", "quat"}
 
 
@@ -84,6 +84,9 @@ _LIE_ARGS: dict[str, tuple[tuple[str, str], ...]] = {
     "convert.matrix_to_quaternion": (("R", "rot"),),
     "convert.pose_from_translation_quaternion": (("t", "vec3"), ("q", "quat")),
     "convert.pose_to_translation_quaternion": (("T", "pose"),),
+    "convert.quaternion_conjugate": (("q", "vec4"),),
+    "convert.quaternion_multiply": (("q", "vec4"), ("p", "vec4")),
+    "convert.quaternion_product_matrix": (("q", "vec4"),),
     "convert.quaternion_to_axis_angle": (("q", "quat"),),
     "convert.quaternion_to_matrix": (("q", "quat"),),
     "convert.to_transform3d": (("T", "pose"),),
@@ -139,7 +142,8 @@ def test_the_table_covers_the_whole_public_surface():
         n for n in vars(mf.Manifold) if not n.startswith("_") and callable(vars(mf.Manifold)[n])
     }
     assert public_methods == set(_METHOD_ARGS)
-    assert {type(m) for m in MANIFOLDS} == {getattr(mf, n) for n in mf.__all__ if n != "Manifold"}
+    classes = {getattr(mf, n) for n in mf.__all__ if isinstance(getattr(mf, n), type)}
+    assert {type(m) for m in MANIFOLDS} == classes - {mf.Manifold}
 
 
 # ----------------------------------------------------------------------------- valid inputs
@@ -182,6 +186,8 @@ def _valid(kind: str, batch, dtype, rng, manifold=None):
         return _rotations(rng, batch, dtype)
     if kind == "pose":
         return se3._exp(_randn(rng, (*batch, 6), F64)).to(dtype)
+    if kind == "vec4":  # any quaternion
+        return _randn(rng, (*batch, 4), dtype)
     if kind == "quat":
         q = _randn(rng, (*batch, 4), F64)
         return (q / q.norm(dim=-1, keepdim=True)).to(dtype)

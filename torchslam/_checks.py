@@ -82,6 +82,9 @@ def check_tensor(
             "convert it with .double() (recommended) or .float()"
         )
     nt = len(trailing)
+    shape = x.shape
+    if len(shape) >= nt + min_batch_dims and (nt == 0 or shape[-nt:] == tuple(trailing)):
+        return x  # the common case; the message below is built only on failure (hot paths)
     if dims is None or len(dims) != min_batch_dims:
         dims = ["B"] + [f"d{k}" for k in range(1, min_batch_dims)] if min_batch_dims else []
     expected = _shape_str(["..."] * (1 if min_batch_dims == 0 else 0) + list(dims) + list(trailing))
@@ -102,6 +105,13 @@ def check_tensor(
 
 def check_same_kind(fn: str, **tensors: Tensor) -> None:
     """Reject mixed dtypes or devices among the named tensors (no silent casting)."""
+    values = list(tensors.values())
+    dtype, device = values[0].dtype, values[0].device
+    for t in values:
+        if t.dtype != dtype or t.device != device:
+            break
+    else:
+        return  # the common case, without building the messages below (hot paths)
     items = list(tensors.items())
     name0, t0 = items[0]
     for name, t in items[1:]:
@@ -137,8 +147,10 @@ def orthonormality_tolerance(dtype: torch.dtype) -> float:
 
 def check_rotation(fn: str, name: str, R: Tensor) -> None:
     """Raise ValueError if ``R`` (..., 3, 3) is not a rotation (orthonormal with det +1)."""
+    if not value_checks_active():
+        return
     check_finite(fn, name, R)
-    if not value_checks_active() or R.numel() == 0:
+    if R.numel() == 0:
         return
     Rd = R.detach()
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
@@ -159,8 +171,10 @@ def check_rotation(fn: str, name: str, R: Tensor) -> None:
 
 def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
     """Raise ValueError if quaternions ``q`` (..., 4) are not unit norm."""
+    if not value_checks_active():
+        return
     check_finite(fn, name, q)
-    if not value_checks_active() or q.numel() == 0:
+    if q.numel() == 0:
         return
     norm = torch.linalg.vector_norm(q.detach(), dim=-1)
     tol = orthonormality_tolerance(q.dtype)
@@ -176,9 +190,11 @@ def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
 
 def check_pose_matrix(fn: str, name: str, T: Tensor) -> None:
     """Raise ValueError if ``T`` (..., 4, 4) is not a rigid transform [[R, t], [0, 1]]."""
+    if not value_checks_active():
+        return  # before slicing T: this is on hot paths under validation(False)
     check_finite(fn, name, T)
     check_rotation(fn, name, T[..., :3, :3])
-    if not value_checks_active() or T.numel() == 0:
+    if T.numel() == 0:
         return
     bottom = T.detach()[..., 3, :]
     expected = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
@@ -226,15 +242,32 @@ def check_broadcast(fn: str, **batch_shapes: Sequence[int]) -> tuple[int, ...]:
     Returns:
         The broadcast batch shape.
     """
-    try:
-        return tuple(torch.broadcast_shapes(*(tuple(s) for s in batch_shapes.values())))
-    except RuntimeError:
+    shape = _broadcast_shapes(list(batch_shapes.values()))
+    if shape is None:
         described = " and ".join(
             f"'{name}' with batch shape {tuple(shape)}" for name, shape in batch_shapes.items()
         )
         raise ValueError(
             f"{fn}: the leading (batch) dims of the arguments do not broadcast: {described}"
-        ) from None
+        )
+    return shape
+
+
+def _broadcast_shapes(shapes: list[Sequence[int]]) -> tuple[int, ...] | None:
+    """torch.broadcast_shapes in plain Python (that one costs ~30 µs a call, too much for hot
+    paths), or None when the shapes do not broadcast."""
+    result = list(shapes[0])
+    for shape in shapes[1:]:
+        if len(shape) > len(result):
+            result = [1] * (len(shape) - len(result)) + result
+        offset = len(result) - len(shape)
+        for k, size in enumerate(shape):
+            current = result[offset + k]
+            if size != current and size != 1:
+                if current != 1:
+                    return None
+                result[offset + k] = size
+    return tuple(result)
 
 
 def check_sizes(fn: str, name: str, sizes: Sequence[object]) -> tuple[int, ...]:

@@ -29,7 +29,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchslam import _checks
+from torchslam import _checks, manifold
 from torchslam.lie import se3, so3
 
 __all__ = [
@@ -60,8 +60,8 @@ def observation_residual(
     Returns:
         Residuals, shape (..., 3).
     """
-    T = se3._exp(pose_tangent) @ se3._exp(delta)
-    return observation - se3._act(T, point)
+    T = se3.exp(pose_tangent, form="fast") @ se3.exp(delta, form="fast")
+    return observation - se3.act(T, point)
 
 
 def analytic_blocks(R: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
@@ -81,7 +81,7 @@ def analytic_blocks(R: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
     _checks.check_same_kind(fn, R=R, points=points)
     _check_lead(fn, R=R.shape[:-2], points=points.shape[:-1])
     J_r_point = -R
-    J_r_xi = torch.cat((R @ so3._hat(points), J_r_point), dim=-1)
+    J_r_xi = torch.cat((R @ so3.hat(points), J_r_point), dim=-1)
     return J_r_xi, J_r_point
 
 
@@ -89,6 +89,9 @@ def jacrev_blocks(
     pose_tangent: Tensor, points: Tensor, observations: Tensor
 ) -> tuple[Tensor, Tensor]:
     """The same blocks as :func:`analytic_blocks` from ``torch.func.jacrev`` at δ = 0.
+
+    Differentiates r(Exp(ξ)·Exp(δ), X) w.r.t. δ and X with
+    :func:`torchslam.manifold.right_jacobian_jacrev`, vmapped over observations.
 
     Args:
         pose_tangent: pose ξ of the observing frame per observation, shape (..., 6).
@@ -100,16 +103,16 @@ def jacrev_blocks(
     """
     fn = "jacobians.jacrev_blocks"
     _check_observation_args(fn, pose_tangent, points, observations)
-    batch = points.shape[:-1]
-    xi = pose_tangent.reshape(-1, 6)
-    X = points.reshape(-1, 3)
-    obs = observations.reshape(-1, 3)
-    if xi.shape[0] == 0:  # vmap cannot map over zero rows (e.g. a pose graph without points)
-        return xi.new_zeros(*batch, 3, 6), xi.new_zeros(*batch, 3, 3)
-    delta = torch.zeros_like(xi)
-    jac = torch.func.jacrev(observation_residual, argnums=(1, 2))
-    J_xi, J_point = torch.func.vmap(jac)(xi, delta, X, obs)
-    return J_xi.reshape(*batch, 3, 6), J_point.reshape(*batch, 3, 3)
+    T = se3.exp(pose_tangent, form="fast")
+    J_xi, J_point = manifold.right_jacobian_jacrev(
+        _residual_at, (T,), (points,), (observations,), batch_dims=points.dim() - 1
+    )
+    return J_xi, J_point
+
+
+def _residual_at(T: Tensor, point: Tensor, observation: Tensor) -> Tensor:
+    """r = X_obs − T X for one observation: T (4, 4), X and X_obs (3,)."""
+    return observation - se3.act(T, point)
 
 
 def central_difference_blocks(

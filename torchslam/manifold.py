@@ -24,6 +24,11 @@ Implementations: :class:`Euclidean`, :class:`SE3Matrix` (4×4 rigid transforms),
 form, a twist ξ). Conventions: ξ = (ω, v), rotation first; right perturbation x·Exp(δ) unless
 ``perturbation="left"`` (Exp(δ)·x); quaternions are Hamilton, stored (w, x, y, z).
 
+:func:`right_jacobian_jacrev` is the one ``torch.func.jacrev``-at-zero helper: the Jacobians of
+any function of poses (right perturbations T·Exp(δ)) and vectors, for terms without analytic
+blocks and for tests. :meth:`SE3Tangent.retract` is the retraction the solver applies to its
+iterates.
+
 Every method takes arbitrary leading batch dims (leading dims of the arguments broadcast), keeps
 dtype and device, is differentiable and ``torch.func`` (jacrev/vmap) compatible. Shapes and
 dtypes are checked at every public method; the value checks (finite, unit norm, rigid) follow
@@ -34,6 +39,7 @@ from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -41,7 +47,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
-from torchslam.lie import _series, se3, so3
+from torchslam.lie import convert, se3, so3
 
 __all__ = [
     "Euclidean",
@@ -49,6 +55,7 @@ __all__ = [
     "SE3Matrix",
     "SE3Tangent",
     "SO3Quaternion",
+    "right_jacobian_jacrev",
 ]
 
 Perturbation = Literal["right", "left"]
@@ -60,6 +67,15 @@ def _check_perturbation(owner: str, perturbation: object) -> None:
         raise ValueError(
             f"{owner}: argument 'perturbation' must be 'right' or 'left', got {perturbation!r}"
         )
+
+
+def _unchecked(f: Callable[..., Tensor], *args: Tensor) -> Tensor:
+    """f(*args) with value checks off: the private math runs after the public checks, and the
+    public ``lie`` functions it calls need not check (and sync) again."""
+    if not _checks.value_checks_active():
+        return f(*args)
+    with _checks.validation(False):
+        return f(*args)
 
 
 def _broadcast_batch(fn: str, **batch_shapes: tuple[int, ...]) -> tuple[int, ...]:
@@ -106,13 +122,8 @@ class Manifold(abc.ABC):
             Points, shape (broadcast batch, *point_shape).
         """
         fn = self._fn("plus")
-        self._check_point_metadata(fn, "x", x)
-        self._check_tangent_metadata(fn, "delta", delta)
-        _checks.check_same_kind(fn, x=x, delta=delta)
-        _broadcast_batch(fn, x=self._batch_shape(x), delta=tuple(delta.shape[:-1]))
-        self._check_point_values(fn, "x", x)
-        _checks.check_finite(fn, "delta", delta)
-        result = self._plus(x, delta)
+        self._check_plus_arguments(fn, x, delta)
+        result = _unchecked(self._plus, x, delta)
         _checks.check_result_finite(fn, result, x=x, delta=delta)
         return result
 
@@ -133,7 +144,7 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, y=self._batch_shape(y), x=self._batch_shape(x))
         self._check_point_values(fn, "y", y)
         self._check_point_values(fn, "x", x)
-        result = self._minus(y, x)
+        result = _unchecked(self._minus, y, x)
         _checks.check_result_finite(fn, result, y=y, x=x)
         return result
 
@@ -150,7 +161,7 @@ class Manifold(abc.ABC):
         fn = self._fn("plus_jacobian")
         self._check_point_metadata(fn, "x", x)
         self._check_point_values(fn, "x", x)
-        result = self._plus_jacobian(x)
+        result = _unchecked(self._plus_jacobian, x)
         _checks.check_result_finite(fn, result, x=x)
         return result
 
@@ -169,7 +180,7 @@ class Manifold(abc.ABC):
         fn = self._fn("minus_jacobian")
         self._check_point_metadata(fn, "x", x)
         self._check_point_values(fn, "x", x)
-        result = self._minus_jacobian(x)
+        result = _unchecked(self._minus_jacobian, x)
         _checks.check_result_finite(fn, result, x=x)
         return result
 
@@ -201,7 +212,7 @@ class Manifold(abc.ABC):
         _broadcast_batch(fn, x=self._batch_shape(x), J_r_ambient=tuple(J_r_ambient.shape[:-2]))
         self._check_point_values(fn, "x", x)
         _checks.check_finite(fn, "J_r_ambient", J_r_ambient)
-        result = self._right_multiply_by_plus_jacobian(x, J_r_ambient)
+        result = _unchecked(self._right_multiply_by_plus_jacobian, x, J_r_ambient)
         _checks.check_result_finite(fn, result, x=x, J_r_ambient=J_r_ambient)
         return result
 
@@ -227,6 +238,14 @@ class Manifold(abc.ABC):
 
     def _fn(self, method: str) -> str:
         return f"{type(self).__name__}.{method}"
+
+    def _check_plus_arguments(self, fn: str, x: Tensor, delta: Tensor) -> None:
+        self._check_point_metadata(fn, "x", x)
+        self._check_tangent_metadata(fn, "delta", delta)
+        _checks.check_same_kind(fn, x=x, delta=delta)
+        _broadcast_batch(fn, x=self._batch_shape(x), delta=delta.shape[:-1])
+        self._check_point_values(fn, "x", x)
+        _checks.check_finite(fn, "delta", delta)
 
     def _batch_shape(self, x: Tensor) -> tuple[int, ...]:
         return tuple(x.shape[: x.dim() - len(self.point_shape)])
@@ -303,7 +322,7 @@ def _se3_generators(like: Tensor) -> Tensor:
 
 def _two_vee(M: Tensor) -> Tensor:
     """⟨M, hat(e_k)⟩_F = (M21 − M12, M02 − M20, M10 − M01)_k; (..., 3, 3) → (..., 3)."""
-    return 2.0 * so3._vee(M)
+    return 2.0 * so3.vee(M)
 
 
 @dataclass(frozen=True)
@@ -343,8 +362,8 @@ class SE3Matrix(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return x @ se3._exp_robust(delta)
-        return se3._exp_robust(delta) @ x
+            return x @ se3.exp(delta)
+        return se3.exp(delta) @ x
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         R, t = x[..., :3, :3], x[..., :3, 3:]
@@ -357,8 +376,8 @@ class SE3Matrix(Manifold):
             # Y·T⁻¹ = [[R_y Rᵀ, t_y − R_y Rᵀ t], [0, 1]]
             R_rel = R_y @ R.transpose(-1, -2)
             t_rel = t_y - R_rel @ t
-        omega = so3._log(R_rel)
-        v = (so3._jl_inv(omega) @ t_rel).squeeze(-1)  # seed eq. L6
+        omega = so3.log(R_rel)
+        v = (so3.jl_inv(omega, form="fast") @ t_rel).squeeze(-1)  # seed eq. L6, |ω| ≤ π
         return torch.cat((omega, v), dim=-1)
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
@@ -411,73 +430,6 @@ class SE3Matrix(Manifold):
 # --------------------------------------------------------------------------- SO(3) quaternions
 
 
-def _quaternion_multiply(q: Tensor, p: Tensor) -> Tensor:
-    """Hamilton product q ⊗ p of (w, x, y, z) quaternions; leading dims broadcast."""
-    q_w, q_v = q[..., :1], q[..., 1:]
-    p_w, p_v = p[..., :1], p[..., 1:]
-    q_v, p_v = torch.broadcast_tensors(q_v, p_v)
-    w = q_w * p_w - (q_v * p_v).sum(-1, keepdim=True)
-    v = q_w * p_v + p_w * q_v + torch.linalg.cross(q_v, p_v, dim=-1)
-    return torch.cat((w, v), dim=-1)
-
-
-def _quaternion_conjugate(q: Tensor) -> Tensor:
-    return torch.cat((q[..., :1], -q[..., 1:]), dim=-1)
-
-
-def _quaternion_exp(delta: Tensor) -> Tensor:
-    """Exp of a rotation vector as a unit quaternion (cos(θ/2), sin(θ/2)/θ · δ), exact at θ = 0."""
-    # With φ = θ/2: cos φ = 1 − φ²·b(φ²) and sin φ / θ = a(φ²)/2, from the series-safe
-    # Rodrigues coefficients (a, b) = (sin φ/φ, (1 − cos φ)/φ²); a unit-axis form for huge θ.
-    return so3._axis_angle_to_quaternion(delta)
-
-
-def _quaternion_log(q: Tensor) -> Tensor:
-    """Rotation vector of a unit quaternion, angle in [0, π] (q and −q give the same result)."""
-    q = torch.where(q[..., :1] < 0, -q, q)
-    w, v = q[..., 0], q[..., 1:]
-    n2 = (v * v).sum(-1)
-    # θ = 2 atan2(|v|, w), ω = θ v/|v|. Below θ = π/2 (|v| < w) atan_ratio_squared is exact at
-    # |v| = 0 and reads |v|² (first and second derivatives finite there); above, atan2(|v|, w)/|v|
-    # is safe (|v| ≥ 1/√2). Double where: each branch sees safe values, so gradients stay
-    # finite at θ = 0 and at θ = π (w = 0, where the series would see (|v|/w)² = ∞).
-    large = n2 >= w * w
-    n_large = torch.sqrt(torch.where(large, n2, torch.ones_like(n2)))
-    ratio_large = torch.atan2(n_large, w) / n_large
-    ratio_small = _series.atan_ratio_squared(
-        torch.where(large, torch.zeros_like(n2), n2), torch.where(large, torch.ones_like(w), w)
-    )
-    return (2.0 * torch.where(large, ratio_large, ratio_small))[..., None] * v
-
-
-def _quaternion_left_matrix(q: Tensor) -> Tensor:
-    """[q]_L with q ⊗ p = [q]_L p (Solà, eq. 18), shape (..., 4, 4)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), dim=-1),
-            torch.stack((x, w, -z, y), dim=-1),
-            torch.stack((y, z, w, -x), dim=-1),
-            torch.stack((z, -y, x, w), dim=-1),
-        ),
-        dim=-2,
-    )
-
-
-def _quaternion_right_matrix(q: Tensor) -> Tensor:
-    """[q]_R with p ⊗ q = [q]_R p (Solà, eq. 19), shape (..., 4, 4)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            torch.stack((w, -x, -y, -z), dim=-1),
-            torch.stack((x, w, z, -y), dim=-1),
-            torch.stack((y, -z, w, x), dim=-1),
-            torch.stack((z, y, -x, w), dim=-1),
-        ),
-        dim=-2,
-    )
-
-
 @dataclass(frozen=True)
 class SO3Quaternion(Manifold):
     """SO(3) stored as unit quaternions q = (w, x, y, z) (Hamilton, as in Ceres), tangent R³.
@@ -516,26 +468,28 @@ class SO3Quaternion(Manifold):
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return _quaternion_multiply(x, _quaternion_exp(delta))
-        return _quaternion_multiply(_quaternion_exp(delta), x)
+            return convert.quaternion_multiply(x, convert.axis_angle_to_quaternion(delta))
+        return convert.quaternion_multiply(convert.axis_angle_to_quaternion(delta), x)
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return _quaternion_log(_quaternion_multiply(_quaternion_conjugate(x), y))
-        return _quaternion_log(_quaternion_multiply(y, _quaternion_conjugate(x)))
+            relative = convert.quaternion_multiply(convert.quaternion_conjugate(x), y)
+        else:
+            relative = convert.quaternion_multiply(y, convert.quaternion_conjugate(x))
+        return convert.quaternion_to_axis_angle(relative)  # angle ≤ π (q ≡ −q)
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         # ∂(q ⊗ δq)/∂δq · ∂δq/∂δ = [q]_L · ½[0; I₃]: columns 1..3 of [q]_L, halved.
         if self.perturbation == "right":
-            return 0.5 * _quaternion_left_matrix(x)[..., :, 1:]
-        return 0.5 * _quaternion_right_matrix(x)[..., :, 1:]
+            return 0.5 * convert.quaternion_product_matrix(x, "left")[..., :, 1:]
+        return 0.5 * convert.quaternion_product_matrix(x, "right")[..., :, 1:]
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         # Log(u) = 2 v/w + O(|v|²) at u = (1, 0): d minus = 2 · (vector rows of d(q* ⊗ y)).
-        x_conjugate = _quaternion_conjugate(x)
+        x_conjugate = convert.quaternion_conjugate(x)
         if self.perturbation == "right":
-            return 2.0 * _quaternion_left_matrix(x_conjugate)[..., 1:, :]
-        return 2.0 * _quaternion_right_matrix(x_conjugate)[..., 1:, :]
+            return 2.0 * convert.quaternion_product_matrix(x_conjugate, "left")[..., 1:, :]
+        return 2.0 * convert.quaternion_product_matrix(x_conjugate, "right")[..., 1:, :]
 
 
 # --------------------------------------------------------------------------- SE(3) twists
@@ -591,22 +545,195 @@ class SE3Tangent(Manifold):
                 "with se3.log(se3.exp(xi))"
             )
 
+    def retract(self, x: Tensor, delta: Tensor) -> Tensor:
+        """The solver's step ξ ← Log(Exp(ξ)·Exp(δ)) (left: Log(Exp(δ)·Exp(ξ))), seed eq. L1/L2.
+
+        The same values as :meth:`plus` (bit for bit for |ω|, |δω| ≤ 2²⁰ and translations up
+        to 2⁵¹², float64; 2¹⁰ and 2⁶⁴ in float32), computed with the cheaper θ-power forms
+        (``se3.exp(..., form="fast")``), except that a row whose δ is exactly zero keeps ξ bit
+        for bit (a fixed pose; the Log∘Exp round trip would move it by a few ulps). Its
+        derivative with respect to δ on such a row is therefore zero: differentiate
+        :meth:`plus` for the chart's Jacobian. Checks as :meth:`plus` (under
+        ``torchslam.validation(False)`` only the cheap shape and dtype checks run).
+
+        Args:
+            x: twists ξ = (ω, v), rotation first, |ω| ≤ π, shape (..., 6).
+            delta: steps δ = (δω, δv), shape (..., 6); leading dims broadcast with x's.
+
+        Returns:
+            Twists, shape (broadcast batch, 6).
+        """
+        fn = "SE3Tangent.retract"
+        self._check_plus_arguments(fn, x, delta)
+        result = _unchecked(self._retract, x, delta)
+        _checks.check_result_finite(fn, result, x=x, delta=delta)
+        return result
+
+    def _retract(self, x: Tensor, delta: Tensor) -> Tensor:
+        if self.perturbation == "right":
+            moved = se3.log(se3.exp(x, form="fast") @ se3.exp(delta, form="fast"))
+        else:
+            moved = se3.log(se3.exp(delta, form="fast") @ se3.exp(x, form="fast"))
+        return torch.where((delta == 0).all(dim=-1, keepdim=True), x, moved)
+
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._exp_robust(x) @ se3._exp_robust(delta))
-        return se3._log(se3._exp_robust(delta) @ se3._exp_robust(x))
+            return se3.log(se3.exp(x) @ se3.exp(delta))
+        return se3.log(se3.exp(delta) @ se3.exp(x))
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._log(se3._inverse(se3._exp_robust(x)) @ se3._exp_robust(y))
-        return se3._log(se3._exp_robust(y) @ se3._inverse(se3._exp_robust(x)))
+            return se3.log(se3.inverse(se3.exp(x)) @ se3.exp(y))
+        return se3.log(se3.exp(y) @ se3.inverse(se3.exp(x)))
 
     def _plus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl_inv_robust(-x)  # jr_inv(ξ)
-        return se3._jl_inv_robust(x)
+            return se3.jr_inv(x)
+        return se3.jl_inv(x)
 
     def _minus_jacobian(self, x: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3._jl_robust(-x)  # jr(ξ)
-        return se3._jl_robust(x)
+            return se3.jr(x)
+        return se3.jl(x)
+
+
+# --------------------------------------------------------------------------- jacrev at zero
+
+
+def right_jacobian_jacrev(
+    fn: Callable[..., Tensor],
+    poses: Sequence[Tensor],
+    euclidean: Sequence[Tensor] = (),
+    constants: Sequence[Tensor] | Mapping[str, Tensor] = (),
+    *,
+    batch_dims: int | None = None,
+) -> tuple[Tensor, ...]:
+    """Jacobians of ``fn`` w.r.t. right pose perturbations and vector increments, at zero.
+
+    For each instance (one index into the leading ``batch_dims`` dims) this differentiates
+
+        fn(T_1·Exp(δ_1), …, T_p·Exp(δ_p), x_1 + d_1, …, x_e + d_e, *constants)
+
+    (``**constants`` when ``constants`` is a mapping) with ``torch.func.jacrev`` w.r.t. every
+    δ_k and d_k at δ = 0, d = 0 (seed eq. L1: right perturbation T·Exp(δ); δ = (ω, v),
+    rotation first), ``torch.func.vmap``-ed over the instances. This is the seed's "Jacobian
+    w.r.t. the error state"; the solver's analytic blocks follow the same convention.
+
+    Shapes: the first ``batch_dims`` dims of every argument index the instances (they
+    broadcast); the dims after them belong to one instance. A pose argument has shape
+    (*batch, *inner, 4, 4) (``inner`` may be empty, or e.g. (a,) for a term that touches a
+    poses per instance), a vector argument (*batch, *inner, n), a constant (*batch, *any).
+    ``fn`` is called with one instance's slices, (*inner, 4, 4), (*inner, n), (*any), and
+    returns shape (*out) (e.g. (d,) for a residual); a function written batched over leading
+    dims (``...``) works as is.
+
+    Args:
+        fn: the function, e.g. a residual; called as described above.
+        poses: pose arguments, each (*batch, *inner, 4, 4), rigid transforms [[R, t], [0, 1]].
+        euclidean: vector arguments, each (*batch, *inner, n).
+        constants: further arguments passed as they are: a sequence (positional, after the
+            vectors) or a mapping of names to tensors (keyword arguments), each (*batch, …).
+        batch_dims: the number of leading instance dims; default: those of ``poses[0]``
+            (``poses[0].dim() - 2``), or of ``euclidean[0]`` (``dim() - 1``) without poses.
+
+    Returns:
+        One Jacobian per pose, shape (*batch, *out, *inner, 6), then one per vector, shape
+        (*batch, *out, *inner, n); float, with the poses' dtype and device.
+    """
+    name = "right_jacobian_jacrev"
+    if not callable(fn):
+        raise TypeError(f"{name}: argument 'fn' must be callable, got {_checks.describe(fn)}")
+    poses = _as_tensor_tuple(name, "poses", poses)
+    euclidean = _as_tensor_tuple(name, "euclidean", euclidean)
+    keyword = isinstance(constants, Mapping)
+    constant_names = tuple(constants) if keyword else ()
+    if keyword and not all(isinstance(k, str) for k in constant_names):
+        raise TypeError(f"{name}: the keys of argument 'constants' must be str")
+    constant_values = _as_tensor_tuple(
+        name, "constants", tuple(constants.values()) if keyword else constants
+    )
+    if not poses and not euclidean:
+        raise ValueError(
+            f"{name}: there is nothing to differentiate: 'poses' and 'euclidean' are empty"
+        )
+    if batch_dims is None:
+        batch_dims = poses[0].dim() - 2 if poses else euclidean[0].dim() - 1
+    batch_dims = _checks.check_int(name, "batch_dims", batch_dims, minimum=0)
+    for k, T in enumerate(poses):
+        _checks.check_tensor(name, f"poses[{k}]", T, (4, 4), min_batch_dims=batch_dims)
+    for k, x in enumerate(euclidean):
+        _checks.check_tensor(name, f"euclidean[{k}]", x)
+        if x.dim() < batch_dims + 1:
+            raise ValueError(
+                f"{name}: argument 'euclidean[{k}]' must have shape (*batch, *inner, n) with "
+                f"{batch_dims} batch dim(s), got {tuple(x.shape)}"
+            )
+    for k, c in enumerate(constant_values):
+        _checks.check_tensor(
+            name, f"constants[{k}]", c, (), min_batch_dims=batch_dims, floating=False
+        )
+    variables = {f"poses[{k}]": T for k, T in enumerate(poses)}
+    variables.update({f"euclidean[{k}]": x for k, x in enumerate(euclidean)})
+    _checks.check_same_kind(name, **variables)
+    first = next(iter(variables.values()))
+    for k, c in enumerate(constant_values):
+        if c.device != first.device:
+            raise ValueError(
+                f"{name}: 'constants[{k}]' is on {c.device} but the variables are on "
+                f"{first.device}; move one of them first"
+            )
+    arguments = (*poses, *euclidean, *constant_values)
+    names = (*variables, *(f"constants[{k}]" for k in range(len(constant_values))))
+    batch = _checks.check_broadcast(
+        name, **{n: a.shape[:batch_dims] for n, a in zip(names, arguments, strict=True)}
+    )
+    for n, value in variables.items():
+        _checks.check_finite(name, n, value)
+
+    def perturbed(
+        deltas: tuple[Tensor, ...], vectors: tuple[Tensor, ...], Ts: tuple[Tensor, ...], cs: tuple
+    ) -> Tensor:
+        moved = tuple(T @ se3.exp(d, form="fast") for T, d in zip(Ts, deltas, strict=True))
+        if keyword:
+            return fn(*moved, *vectors, **dict(zip(constant_names, cs, strict=True)))
+        return fn(*moved, *vectors, *cs)
+
+    def instance(a: Tensor) -> Tensor:  # (*batch, *rest) → (N, *rest)
+        return a.expand(*batch, *a.shape[batch_dims:]).reshape(-1, *a.shape[batch_dims:])
+
+    Ts = tuple(instance(T) for T in poses)
+    vectors = tuple(instance(x) for x in euclidean)
+    cs = tuple(instance(c) for c in constant_values)
+    deltas = tuple(T.new_zeros(*T.shape[:-2], 6) for T in Ts)
+    jacobian = torch.func.jacrev(perturbed, argnums=(0, 1))
+    if math.prod(batch) == 0:
+        # vmap cannot map over zero instances: learn the shapes from one dummy instance
+        # (identity poses, zero vectors and constants), then return empty blocks.
+        J_delta, J_vector = jacobian(
+            tuple(d.new_zeros(d.shape[1:]) for d in deltas),
+            tuple(x.new_zeros(x.shape[1:]) for x in vectors),
+            tuple(_identity(T.shape[1:-2], T) for T in Ts),
+            tuple(c.new_zeros(c.shape[1:]) for c in cs),
+        )
+        return tuple(J.new_zeros(*batch, *J.shape) for J in (*J_delta, *J_vector))
+    J_delta, J_vector = torch.func.vmap(jacobian)(deltas, vectors, Ts, cs)
+    return tuple(J.reshape(*batch, *J.shape[1:]) for J in (*J_delta, *J_vector))
+
+
+def _as_tensor_tuple(fn: str, name: str, values: object) -> tuple[Tensor, ...]:
+    if isinstance(values, Tensor) or not isinstance(values, Sequence):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a tuple or list of tensors, got "
+            f"{_checks.describe(values)}"
+        )
+    for k, value in enumerate(values):
+        if not isinstance(value, Tensor):
+            raise TypeError(
+                f"{fn}: argument '{name}[{k}]' must be a torch.Tensor, got "
+                f"{_checks.describe(value)}"
+            )
+    return tuple(values)
+
+
+def _identity(batch: Sequence[int], like: Tensor) -> Tensor:
+    return torch.eye(4, dtype=like.dtype, device=like.device).expand(*batch, 4, 4).clone()

@@ -149,7 +149,8 @@ def _alignment(fn: str, poses: Tensor, poses_gt: Tensor) -> Tensor:
 
 def _rotation_angle_deg(R: Tensor) -> Tensor:
     """Rotation angle of R (..., 3, 3) in degrees, exact near 0 (from Log, not acos)."""
-    return torch.rad2deg(torch.linalg.vector_norm(so3._log(R), dim=-1))
+    with _checks.validation(False):  # products of checked poses: rigid up to round-off
+        return torch.rad2deg(torch.linalg.vector_norm(so3.log(R), dim=-1))
 
 
 def _positions(poses: Tensor) -> Tensor:
@@ -218,9 +219,10 @@ def relative_pose_error(poses: Tensor, poses_gt: Tensor) -> tuple[Tensor, Tensor
 
 def _rpe(poses: Tensor, poses_gt: Tensor) -> tuple[Tensor, Tensor]:
     def motion(T: Tensor) -> Tensor:
-        return T[..., :-1, :, :] @ se3._inverse(T[..., 1:, :, :])
+        return T[..., :-1, :, :] @ se3.inverse(T[..., 1:, :, :])
 
-    E = se3._inverse(motion(poses_gt)) @ motion(poses)
+    with _checks.validation(False):  # checked poses and their products
+        E = se3.inverse(motion(poses_gt)) @ motion(poses)
     rotation = _rotation_angle_deg(E[..., :3, :3])
     translation = torch.linalg.vector_norm(E[..., :3, 3], dim=-1)
     return rotation, translation
@@ -299,9 +301,10 @@ def evaluate(
         )
     if align == "se3":
         alignment = _alignment(fn, poses, poses_gt)
-        poses = poses @ se3._inverse(alignment)[..., None, :, :]
-        if points is not None:
-            points = se3._act(alignment[..., None, :, :], points)
+        with _checks.validation(False):  # a rigid alignment of checked inputs
+            poses = poses @ se3.inverse(alignment)[..., None, :, :]
+            if points is not None:
+                points = se3.act(alignment[..., None, :, :], points)
     else:
         alignment = None
 

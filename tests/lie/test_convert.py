@@ -327,3 +327,48 @@ def test_quaternion_log_second_derivatives_are_finite_and_exact_at_the_identity(
             H = torch.autograd.functional.hessian(lambda x, f=f: 0.5 * f(x).square().sum(), x0)
             assert torch.isfinite(H).all()
             torch.testing.assert_close(H, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- quaternion algebra
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES, ids=str)
+def test_quaternion_algebra_matches_rotation_matrices(shape, generator):
+    q = _random_unit_quaternions(shape, generator)
+    p = _random_unit_quaternions(shape, generator)
+    R = convert.quaternion_to_matrix
+    # Products of O(1) entries: round-off ~1e-16 per operation.
+    assert _max_err(R(convert.quaternion_multiply(q, p)), R(q) @ R(p)) <= 1e-14
+    assert _max_err(convert.quaternion_multiply(q, p), _hamilton_product(q, p)) <= 1e-15
+    assert _max_err(R(convert.quaternion_conjugate(q)), R(q).transpose(-1, -2)) <= 1e-14
+    left = (convert.quaternion_product_matrix(q, "left") @ p[..., None])[..., 0]
+    right = (convert.quaternion_product_matrix(p, "right") @ q[..., None])[..., 0]
+    assert _max_err(left, convert.quaternion_multiply(q, p)) <= 1e-15
+    assert _max_err(right, convert.quaternion_multiply(q, p)) <= 1e-15
+
+
+def test_quaternion_multiply_broadcasts_and_names_itself():
+    q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    p = torch.randn(3, 2, 4, dtype=torch.float64)
+    assert torch.equal(convert.quaternion_multiply(q, p), p)
+    with pytest.raises(ValueError, match=r"convert\.quaternion_multiply: argument 'p' must have"):
+        convert.quaternion_multiply(q, p[..., :3])
+    with pytest.raises(ValueError, match=r"convert\.quaternion_multiply: the leading \(batch\)"):
+        convert.quaternion_multiply(p, torch.zeros(4, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"quaternion_product_matrix: argument 'side' must be"):
+        convert.quaternion_product_matrix(q, "up")
+
+
+def test_one_quaternion_log_for_so3_log_and_the_quaternion_manifold(generator):
+    # so3.log is the quaternion route (Shepperd, then θ = 2·atan2(|v|, w)); the same bits.
+    omega = rotation_vectors_with_angles(HARD_ANGLES, generator)
+    R = so3.exp(omega)
+    route = convert.quaternion_to_axis_angle(convert.matrix_to_quaternion(R))
+    assert torch.equal(so3.log(R), route)
+    # q ≡ −q: both signs give the angle ≤ π, exactly the same vector.
+    q = convert.axis_angle_to_quaternion(omega)
+    assert torch.equal(convert.quaternion_to_axis_angle(-q), convert.quaternion_to_axis_angle(q))
+    # θ → π: w = cos(θ/2) ≈ 5e-7; atan2 keeps the angle to round-off (an acos of w would not).
+    near_pi = rotation_vectors_with_angles((math.pi - 1e-6,), generator)
+    back = convert.quaternion_to_axis_angle(convert.axis_angle_to_quaternion(near_pi))
+    assert _max_err(back, near_pi) <= 4e-15

@@ -15,8 +15,8 @@ import pytest
 import torch
 from torch.func import jacrev, vmap
 
+import torchslam
 from tests.helpers import HARD_TRANSLATIONS, central_difference, rotation_vectors_with_angles
-from torchslam import manifold
 from torchslam.lie import convert, se3, so3
 
 F64, F32 = torch.float64, torch.float32
@@ -48,7 +48,6 @@ SO3_MAPS = [
     so3.jl_inv,
     so3.jr_inv,
     convert.axis_angle_to_quaternion,
-    manifold._quaternion_exp,
 ]
 SE3_MAPS = [se3.exp, se3.jl, se3.jr, se3.jl_inv, se3.jr_inv]
 
@@ -160,20 +159,24 @@ def test_limits_for_infinite_angle():
 
 @pytest.mark.parametrize("dtype", [F64, F32], ids=["f64", "f32"])
 def test_robust_forms_equal_the_hot_path_forms_bitwise(generator, dtype):
-    # The solver calls the θ-power forms (so3._exp, se3._exp, se3._jl_inv, ...) directly; the
-    # public functions use the robust forms, which take the very same operations on ordinary
-    # input (every hard angle, angles up to the switch, translations up to 1e4): equal bits.
+    # The solver calls form="fast" (the θ-power forms); the default form="robust" takes the very
+    # same operations on ordinary input (every hard angle, angles up to the switch,
+    # translations up to 1e4): equal bits.
     below_switch = 2.0**20 * 0.99 if dtype == F64 else 2.0**10 * 0.99
     angles = (0.0, 1e-12, 1e-8, 1e-4, 0.3, 0.5, math.pi / 2, math.pi - 1e-6, math.pi, 7.0)
     omega = rotation_vectors_with_angles((*angles, below_switch), generator, dtype=dtype)
     xi = _twists(omega, generator)
-    pairs = [
-        (so3._exp, so3._exp_robust, omega),
-        (so3._jl, so3._jl_robust, omega),
-        (so3._jl_inv, so3._jl_inv_robust, omega),
-        (se3._exp, se3._exp_robust, xi),
-        (se3._jl, se3._jl_robust, xi),
-        (se3._jl_inv, se3._jl_inv_robust, xi),
-    ]
-    for fast, robust, x in pairs:
-        assert torch.equal(fast(x), robust(x)), fast.__qualname__
+    for module, x in ((so3, omega), (se3, xi)):
+        for name in ("exp", "jl", "jr", "jl_inv", "jr_inv"):
+            f = getattr(module, name)
+            with torchslam.validation(False):
+                assert torch.equal(f(x, form="fast"), f(x)), f"{module.__name__}.{name}"
+
+
+def test_form_is_checked():
+    for f in (so3.exp, so3.jl, so3.jr, so3.jl_inv, so3.jr_inv):
+        with pytest.raises(ValueError, match=rf"so3\.{f.__name__}: argument 'form' must be"):
+            f(torch.zeros(3, dtype=F64), form="unit_axis")
+    for f in (se3.exp, se3.jl, se3.jr, se3.jl_inv, se3.jr_inv):
+        with pytest.raises(ValueError, match=rf"se3\.{f.__name__}: argument 'form' must be"):
+            f(torch.zeros(6, dtype=F64), form=None)

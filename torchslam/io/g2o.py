@@ -62,9 +62,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchslam._checks import check_pose_matrix, check_tensor, describe
+from torchslam._checks import check_pose_matrix, check_tensor, describe, validation
 from torchslam.io import _text
-from torchslam.lie import so3
+from torchslam.lie import convert
 from torchslam.posegraph.graph import PoseGraph
 
 __all__ = ["SKIPPED_TAGS", "format_g2o", "parse_g2o", "read_g2o", "write_g2o"]
@@ -440,7 +440,8 @@ def _format_g2o(fn: str, graph: PoseGraph, poses: Tensor | None) -> str:
 
 def _pose_rows_3d(T: Tensor) -> list[list[float]]:
     """(K, 4, 4) → rows (x, y, z, qx, qy, qz, qw) with qw ≥ 0."""
-    q = so3._matrix_to_quaternion(T[:, :3, :3])  # (w, x, y, z)
+    with validation(False):  # the graph's poses, checked when it was built
+        q = convert.matrix_to_quaternion(T[:, :3, :3])  # (w, x, y, z)
     return torch.cat((T[:, :3, 3], q[:, 1:], q[:, :1]), dim=-1).tolist()
 
 

@@ -1,4 +1,9 @@
-"""Rotation and pose conversions, and interop with ``pytorch_kinematics.transforms.Transform3d``.
+"""Rotation and pose conversions, quaternion algebra, and ``Transform3d`` interop.
+
+This module holds all of torchslam's quaternion code: ``so3.log`` goes through
+:func:`matrix_to_quaternion` and :func:`quaternion_to_axis_angle`, and the
+``manifold.SO3Quaternion`` manifold through the quaternion algebra below (Hamilton product,
+conjugate, the product matrices).
 
 Conventions (kept across torchslam):
 - Quaternions are Hamilton, stored (w, x, y, z), real part first, unit norm. q and −q are the
@@ -11,8 +16,8 @@ What comes from pytorch-kinematics and what does not (checked by ``tests/lie/tes
 - pytorch-kinematics' ``matrix_to_quaternion``, ``axis_angle_to_quaternion`` and
   ``quaternion_to_axis_angle`` give correct values but NaN gradients at the identity rotation
   (sqrt of 0 and sin θ / θ evaluated at θ = 0), so torchslam's own gradient-safe versions are
-  used instead: Shepperd's method from ``so3``, and the series-backed coefficients of
-  ``torchslam.lie._series``.
+  used instead: Shepperd's method and the series-backed coefficients of
+  ``torchslam.lie._series``, below.
 - ``Transform3d`` (pytorch-kinematics ≥ 0.7) stores the ordinary column-vector matrix: its
   ``get_matrix()`` is exactly T = [[R, t], [0, 1]] and ``transform_points(p)`` = R p + t (its
   class docstring draws the rotation block transposed; the code does not transpose). A
@@ -20,6 +25,8 @@ What comes from pytorch-kinematics and what does not (checked by ``tests/lie/tes
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 import torch
 from pytorch_kinematics.transforms import Transform3d
@@ -37,6 +44,9 @@ __all__ = [
     "matrix_to_quaternion",
     "pose_from_translation_quaternion",
     "pose_to_translation_quaternion",
+    "quaternion_conjugate",
+    "quaternion_multiply",
+    "quaternion_product_matrix",
     "quaternion_to_axis_angle",
     "quaternion_to_matrix",
     "to_transform3d",
@@ -46,6 +56,64 @@ __all__ = [
 def _canonical(q: Tensor) -> Tensor:
     """The representative of ±q with w ≥ 0."""
     return torch.where(q[..., :1] < 0, -q, q)
+
+
+def _matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Shepperd's method, (w, x, y, z), w ≥ 0; vmap-safe and gradient-safe.
+
+    All four candidates are computed; the one built from the largest of
+    (1 + tr, 1 + 2R00 − tr, …) is selected. That value is ≥ 1 for a rotation, so clamping
+    the square root's argument at 0.25 changes only the discarded candidates (and keeps
+    their gradients finite).
+    """
+    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    diag = torch.stack(
+        (
+            1.0 + m00 + m11 + m22,
+            1.0 + m00 - m11 - m22,
+            1.0 - m00 + m11 - m22,
+            1.0 - m00 - m11 + m22,
+        ),
+        dim=-1,
+    )
+    root = torch.sqrt(diag.clamp_min(0.25))  # = 2·|component| for the selected candidate
+    r0, r1, r2, r3 = root.unbind(-1)
+    candidates = torch.stack(
+        (
+            torch.stack((r0 * r0, m21 - m12, m02 - m20, m10 - m01), dim=-1) / (2.0 * r0[..., None]),
+            torch.stack((m21 - m12, r1 * r1, m01 + m10, m02 + m20), dim=-1) / (2.0 * r1[..., None]),
+            torch.stack((m02 - m20, m01 + m10, r2 * r2, m12 + m21), dim=-1) / (2.0 * r2[..., None]),
+            torch.stack((m10 - m01, m02 + m20, m12 + m21, r3 * r3), dim=-1) / (2.0 * r3[..., None]),
+        ),
+        dim=-2,
+    )
+    best = diag.argmax(dim=-1)
+    q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    return _canonical(q)
+
+
+def _axis_angle_to_quaternion(omega: Tensor) -> Tensor:
+    """Unit quaternion (cos(θ/2), sin(θ/2)·ω/θ) of rotation vectors (..., 3), exact at θ = 0."""
+    p = so3._polar(omega)
+    # With x = θ/2: sin(x)/x and (1 − cos x)/x² are the Rodrigues coefficients at x².
+    half2 = 0.25 * p.theta2
+    a, b = _series.sinc_coefficients(half2)
+    w = torch.where(p.large, p.cos_half, 1.0 - half2 * b)
+    scale = torch.where(p.large, p.sin_half, 0.5 * a)
+    return torch.cat((w[..., None], scale[..., None] * p.w), dim=-1)
+
+
+def _quaternion_to_axis_angle(q: Tensor) -> Tensor:
+    """Rotation vector of unit quaternions (..., 4), angle θ = 2·atan2(|v|, |w|) ∈ [0, π]."""
+    q = _canonical(q)  # q ≡ −q: the representative with w ≥ 0 gives θ ≤ π
+    w, v = q[..., 0], q[..., 1:]
+    # ω = θ v / |v|; the ratio atan2(|v|, w)/|v| is exact at |v| = 0 and at w = 0 (θ = π). It
+    # is read off |v|², never |v| (whose derivative is 0/0 at v = 0), so that second
+    # derivatives (a double backward, e.g. a Hessian-vector product through the solver) are
+    # finite at the identity.
+    return (2.0 * _series.atan_ratio_squared((v * v).sum(-1), w))[..., None] * v
 
 
 def quaternion_to_matrix(q: Tensor) -> Tensor:
@@ -79,7 +147,7 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.matrix_to_quaternion", "R", R, (3, 3))
     _checks.check_rotation("convert.matrix_to_quaternion", "R", R)
-    return so3._matrix_to_quaternion(R)
+    return _matrix_to_quaternion(R)
 
 
 def axis_angle_to_quaternion(omega: Tensor) -> Tensor:
@@ -98,7 +166,7 @@ def axis_angle_to_quaternion(omega: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.axis_angle_to_quaternion", "omega", omega, (3,))
     _checks.check_finite("convert.axis_angle_to_quaternion", "omega", omega)
-    return so3._axis_angle_to_quaternion(omega)
+    return _axis_angle_to_quaternion(omega)
 
 
 def quaternion_to_axis_angle(q: Tensor) -> Tensor:
@@ -115,12 +183,7 @@ def quaternion_to_axis_angle(q: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.quaternion_to_axis_angle", "q", q, (4,))
     _checks.check_unit_quaternion("convert.quaternion_to_axis_angle", "q", q)
-    q = _canonical(q)
-    w, v = q[..., 0], q[..., 1:]
-    # |v|² rather than |v|: the norm's derivative is 0/0 at v = 0, which a double backward
-    # turns into NaN; atan_ratio_squared has finite first and second derivatives there.
-    n2 = (v * v).sum(-1)
-    return (2.0 * _series.atan_ratio_squared(n2, w))[..., None] * v
+    return _quaternion_to_axis_angle(q)
 
 
 def axis_angle_to_matrix(omega: Tensor) -> Tensor:
@@ -191,7 +254,83 @@ def pose_to_translation_quaternion(T: Tensor) -> tuple[Tensor, Tensor]:
     fn = "convert.pose_to_translation_quaternion"
     _checks.check_tensor(fn, "T", T, (4, 4))
     _checks.check_pose_matrix(fn, "T", T)
-    return T[..., :3, 3], so3._matrix_to_quaternion(T[..., :3, :3])
+    return T[..., :3, 3], _matrix_to_quaternion(T[..., :3, :3])
+
+
+def quaternion_multiply(q: Tensor, p: Tensor) -> Tensor:
+    """Hamilton product q ⊗ p of quaternions stored (w, x, y, z); leading dims broadcast.
+
+    (q_w, q_v) ⊗ (p_w, p_v) = (q_w p_w − q_v·p_v, q_w p_v + p_w q_v + q_v × p_v), so that
+    R(q ⊗ p) = R(q) R(p) for unit quaternions. Any quaternions (not only unit ones).
+
+    Args:
+        q: quaternions (w, x, y, z), shape (..., 4).
+        p: quaternions (w, x, y, z), shape (..., 4).
+
+    Returns:
+        q ⊗ p, shape broadcast(q.shape[:-1], p.shape[:-1]) + (4,).
+    """
+    fn = "convert.quaternion_multiply"
+    _checks.check_tensor(fn, "q", q, (4,))
+    _checks.check_tensor(fn, "p", p, (4,))
+    _checks.check_same_kind(fn, q=q, p=p)
+    _checks.check_broadcast(fn, q=q.shape[:-1], p=p.shape[:-1])
+    _checks.check_finite(fn, "q", q)
+    _checks.check_finite(fn, "p", p)
+    q_w, q_v = q[..., :1], q[..., 1:]
+    p_w, p_v = p[..., :1], p[..., 1:]
+    q_v, p_v = torch.broadcast_tensors(q_v, p_v)
+    w = q_w * p_w - (q_v * p_v).sum(-1, keepdim=True)
+    v = q_w * p_v + p_w * q_v + torch.linalg.cross(q_v, p_v, dim=-1)
+    result = torch.cat((w, v), dim=-1)
+    _checks.check_result_finite(fn, result, q=q, p=p)
+    return result
+
+
+def quaternion_conjugate(q: Tensor) -> Tensor:
+    """Conjugate q* = (w, −x, −y, −z); the inverse of a unit quaternion, R(q*) = R(q)ᵀ.
+
+    Args:
+        q: quaternions (w, x, y, z), shape (..., 4).
+
+    Returns:
+        q*, shape (..., 4).
+    """
+    _checks.check_tensor("convert.quaternion_conjugate", "q", q, (4,))
+    _checks.check_finite("convert.quaternion_conjugate", "q", q)
+    return torch.cat((q[..., :1], -q[..., 1:]), dim=-1)
+
+
+def quaternion_product_matrix(q: Tensor, side: Literal["left", "right"] = "left") -> Tensor:
+    """The matrix of multiplication by q: [q]_L with q ⊗ p = [q]_L p (``side="left"``), or
+    [q]_R with p ⊗ q = [q]_R p (``side="right"``) (Solà, eqs. 18-19).
+
+    [q]_L = w·I + [[0, −vᵀ], [v, [v]×]] and [q]_R = w·I + [[0, −vᵀ], [v, −[v]×]] for q = (w, v).
+
+    Args:
+        q: quaternions (w, x, y, z), shape (..., 4).
+        side: "left" or "right".
+
+    Returns:
+        Matrices, shape (..., 4, 4), acting on (w, x, y, z) column vectors.
+    """
+    fn = "convert.quaternion_product_matrix"
+    _checks.check_tensor(fn, "q", q, (4,))
+    if side != "left" and side != "right":
+        raise ValueError(f"{fn}: argument 'side' must be 'left' or 'right', got {side!r}")
+    _checks.check_finite(fn, "q", q)
+    w, x, y, z = q.unbind(-1)
+    sign = 1.0 if side == "left" else -1.0
+    sx, sy, sz = sign * x, sign * y, sign * z
+    return torch.stack(
+        (
+            torch.stack((w, -x, -y, -z), dim=-1),
+            torch.stack((x, w, -sz, sy), dim=-1),
+            torch.stack((y, sz, w, -sx), dim=-1),
+            torch.stack((z, -sy, sx, w), dim=-1),
+        ),
+        dim=-2,
+    )
 
 
 def to_transform3d(T: Tensor) -> Transform3d:

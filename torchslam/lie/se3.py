@@ -19,6 +19,11 @@ that overflow although the input is finite when value checks are active (see
 :func:`torchslam.validation`). Finite input never gives NaN: huge rotation vectors use the
 unit-axis form of ``so3`` and huge translations are scaled by an exact power of two inside the
 formulas (:func:`_scale_down`).
+
+``form="fast"`` (``exp``, ``jl``, ``jr``, ``jl_inv``, ``jr_inv``) skips both guards: the
+θ-power formulas only, bitwise equal to the default ``form="robust"`` for |ω| ≤ 2²⁰ and
+translation entries ≤ 2⁵¹² (float32: 2¹⁰, 2⁶⁴), for hot paths whose input is bounded (the
+solver's iterates and steps); beyond, it may lose accuracy or overflow (see ``so3``).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import _series, so3
+from torchslam.lie.so3 import Form, _check_form
 
 __all__ = [
     "act",
@@ -136,7 +142,7 @@ def vee(Xi: Tensor) -> Tensor:
 
 
 def _exp(xi: Tensor) -> Tensor:
-    # The θ-power form, for the solver's hot path; _exp_robust for the public API.
+    # The θ-power form: exp(xi, form="fast").
     omega, v = xi[..., :3], xi[..., 3:]
     theta2 = (omega * omega).sum(-1)
     a, b = _series.sinc_coefficients(theta2)
@@ -164,18 +170,21 @@ def _exp_robust(xi: Tensor) -> Tensor:
     return _assemble(R, t * unscale[..., None])
 
 
-def exp(xi: Tensor) -> Tensor:
+def exp(xi: Tensor, *, form: Form = "robust") -> Tensor:
     """Exponential map se(3) → SE(3) (seed eq. L3): [[Exp(ω), J_l(ω) v], [0, 1]].
 
     Args:
         xi: twists ξ = (ω, v), rotation first, shape (..., 6).
+        form: "robust" (finite for every finite ξ) or "fast" (the θ-power form only: the same
+            bits for |ω| ≤ 2²⁰ and |v| ≤ 2⁵¹², cheaper; see the module docstring).
 
     Returns:
         Rigid transforms, shape (..., 4, 4).
     """
     _checks.check_tensor("se3.exp", "xi", xi, (6,))
+    _check_form("se3.exp", form)
     _checks.check_finite("se3.exp", "xi", xi)
-    result = _exp_robust(xi)
+    result = _exp_robust(xi) if form == "robust" else _exp(xi)
     _checks.check_result_finite("se3.exp", result, xi=xi)
     return result
 
@@ -345,8 +354,8 @@ def _q_block_robust(p: so3._Polar, v: Tensor) -> tuple[Tensor, Tensor]:
     return _q_combination(_hat(p.w), _hat(v), c, q2, q3, kappa), unscale[..., None, None]
 
 
-# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
-# public functions and the manifolds use the _robust forms (bitwise equal for ordinary input).
+# The θ-power forms _jl and _jl_inv are form="fast" of the public functions (hot paths); the
+# default form="robust" uses the _robust forms (bitwise equal for ordinary input).
 
 
 def _jl(xi: Tensor) -> Tensor:
@@ -389,67 +398,75 @@ _JL_INV_REASON = (
 )
 
 
-def jl(xi: Tensor) -> Tensor:
+def jl(xi: Tensor, *, form: Form = "robust") -> Tensor:
     """Left Jacobian of SE(3) in (ω, v) order: [[J_l(ω), 0], [Q(v, ω), J_l(ω)]].
 
     Exp(ξ + d) ≈ Exp(jl(ξ) d) · Exp(ξ) for small d.
 
     Args:
         xi: twists ξ = (ω, v), rotation first, shape (..., 6).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jl", "xi", xi, (6,))
+    _check_form("se3.jl", form)
     _checks.check_finite("se3.jl", "xi", xi)
-    result = _jl_robust(xi)
+    result = _jl_robust(xi) if form == "robust" else _jl(xi)
     _checks.check_result_finite("se3.jl", result, xi=xi)
     return result
 
 
-def jr(xi: Tensor) -> Tensor:
+def jr(xi: Tensor, *, form: Form = "robust") -> Tensor:
     """Right Jacobian of SE(3): jr(ξ) = jl(−ξ); Exp(ξ + d) ≈ Exp(ξ) · Exp(jr(ξ) d).
 
     Args:
         xi: twists ξ = (ω, v), rotation first, shape (..., 6).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jr", "xi", xi, (6,))
+    _check_form("se3.jr", form)
     _checks.check_finite("se3.jr", "xi", xi)
-    result = _jl_robust(-xi)
+    result = _jl_robust(-xi) if form == "robust" else _jl(-xi)
     _checks.check_result_finite("se3.jr", result, xi=xi)
     return result
 
 
-def jl_inv(xi: Tensor) -> Tensor:
+def jl_inv(xi: Tensor, *, form: Form = "robust") -> Tensor:
     """Inverse of :func:`jl`: [[J_l⁻¹, 0], [−J_l⁻¹ Q J_l⁻¹, J_l⁻¹]] (finite for |ω| < 2π).
 
     Args:
         xi: twists ξ = (ω, v), rotation first, shape (..., 6).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jl_inv", "xi", xi, (6,))
+    _check_form("se3.jl_inv", form)
     _checks.check_finite("se3.jl_inv", "xi", xi)
-    result = _jl_inv_robust(xi)
+    result = _jl_inv_robust(xi) if form == "robust" else _jl_inv(xi)
     _checks.check_result_finite("se3.jl_inv", result, reason=_JL_INV_REASON, xi=xi)
     return result
 
 
-def jr_inv(xi: Tensor) -> Tensor:
+def jr_inv(xi: Tensor, *, form: Form = "robust") -> Tensor:
     """Inverse of :func:`jr`: jr_inv(ξ) = jl_inv(−ξ).
 
     Args:
         xi: twists ξ = (ω, v), rotation first, shape (..., 6).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 6, 6).
     """
     _checks.check_tensor("se3.jr_inv", "xi", xi, (6,))
+    _check_form("se3.jr_inv", form)
     _checks.check_finite("se3.jr_inv", "xi", xi)
-    result = _jl_inv_robust(-xi)
+    result = _jl_inv_robust(-xi) if form == "robust" else _jl_inv(-xi)
     _checks.check_result_finite("se3.jr_inv", result, reason=_JL_INV_REASON, xi=xi)
     return result

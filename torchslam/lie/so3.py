@@ -15,12 +15,18 @@ overflow although the input is finite when value checks are active (see
 :func:`torchslam.validation`). Finite input never gives NaN: for |ω| beyond 2²⁰ (float64) /
 2¹⁰ (float32) the formulas switch to a unit-axis form that cannot overflow (see
 :class:`_Polar`), with the angle reduced modulo 2π (exact up to the input's resolution).
+
+``form="fast"`` (``exp``, ``jl``, ``jr``, ``jl_inv``, ``jr_inv``) skips that switch: the
+θ-power formulas only, bitwise equal to the default ``form="robust"`` for |ω| ≤ 2²⁰ (float64;
+2¹⁰ in float32) and cheaper (fewer kernels), for hot paths whose input is bounded (the solver's
+iterates and steps); beyond the switch it may lose accuracy, and it overflows for |ω| ≳ 1e154.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -42,6 +48,13 @@ __all__ = [
     "project",
     "vee",
 ]
+
+Form = Literal["robust", "fast"]
+
+
+def _check_form(fn: str, form: object) -> None:
+    if form != "robust" and form != "fast":
+        raise ValueError(f"{fn}: argument 'form' must be 'robust' or 'fast', got {form!r}")
 
 
 def _hat(omega: Tensor) -> Tensor:
@@ -236,18 +249,7 @@ def _exp_robust(omega: Tensor) -> Tensor:
     return _skew_quadratic(p.w, p.theta2, a, b)
 
 
-def _axis_angle_to_quaternion(omega: Tensor) -> Tensor:
-    """Unit quaternion (cos(θ/2), sin(θ/2)·ω/θ) of rotation vectors (..., 3), exact at θ = 0."""
-    p = _polar(omega)
-    # With x = θ/2: sin(x)/x and (1 − cos x)/x² are the Rodrigues coefficients at x².
-    half2 = 0.25 * p.theta2
-    a, b = _series.sinc_coefficients(half2)
-    w = torch.where(p.large, p.cos_half, 1.0 - half2 * b)
-    scale = torch.where(p.large, p.sin_half, 0.5 * a)
-    return torch.cat((w[..., None], scale[..., None] * p.w), dim=-1)
-
-
-def exp(omega: Tensor) -> Tensor:
+def exp(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Exponential map so(3) → SO(3), Rodrigues' formula (seed eq. L4.1).
 
     R = I + (sin θ / θ) [ω]× + ((1 − cos θ) / θ²) [ω]×², θ = |ω|, with series branches near 0.
@@ -255,58 +257,21 @@ def exp(omega: Tensor) -> Tensor:
 
     Args:
         omega: rotation vectors (axis · angle, radians), shape (..., 3).
+        form: "robust" (finite for every finite ω) or "fast" (the θ-power form only: the same
+            bits up to |ω| = 2²⁰, cheaper; see the module docstring).
 
     Returns:
         Rotation matrices, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.exp", "omega", omega, (3,))
+    _check_form("so3.exp", form)
     _checks.check_finite("so3.exp", "omega", omega)
-    return _exp_robust(omega)
-
-
-def _matrix_to_quaternion(R: Tensor) -> Tensor:
-    """Shepperd's method, (w, x, y, z), w ≥ 0; vmap-safe and gradient-safe.
-
-    All four candidates are computed; the one built from the largest of
-    (1 + tr, 1 + 2R00 − tr, …) is selected. That value is ≥ 1 for a rotation, so clamping
-    the square root's argument at 0.25 changes only the discarded candidates (and keeps
-    their gradients finite).
-    """
-    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    diag = torch.stack(
-        (
-            1.0 + m00 + m11 + m22,
-            1.0 + m00 - m11 - m22,
-            1.0 - m00 + m11 - m22,
-            1.0 - m00 - m11 + m22,
-        ),
-        dim=-1,
-    )
-    root = torch.sqrt(diag.clamp_min(0.25))  # = 2·|component| for the selected candidate
-    r0, r1, r2, r3 = root.unbind(-1)
-    candidates = torch.stack(
-        (
-            torch.stack((r0 * r0, m21 - m12, m02 - m20, m10 - m01), dim=-1) / (2.0 * r0[..., None]),
-            torch.stack((m21 - m12, r1 * r1, m01 + m10, m02 + m20), dim=-1) / (2.0 * r1[..., None]),
-            torch.stack((m02 - m20, m01 + m10, r2 * r2, m12 + m21), dim=-1) / (2.0 * r2[..., None]),
-            torch.stack((m10 - m01, m02 + m20, m12 + m21, r3 * r3), dim=-1) / (2.0 * r3[..., None]),
-        ),
-        dim=-2,
-    )
-    best = diag.argmax(dim=-1)
-    q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
-    return torch.where(q[..., :1] < 0, -q, q)
+    return _exp_robust(omega) if form == "robust" else _exp(omega)
 
 
 def _log(R: Tensor) -> Tensor:
-    q = _matrix_to_quaternion(R)
-    w, v = q[..., 0], q[..., 1:]
-    # ω = θ v / |v| with θ = 2 atan2(|v|, w); the ratio is exact at |v| = 0. It is read off
-    # |v|², never |v| (whose derivative is 0/0 at v = 0), so that second derivatives (a
-    # double backward, e.g. a Hessian-vector product through the solver) are finite at R = I.
-    return (2.0 * _series.atan_ratio_squared((v * v).sum(-1), w))[..., None] * v
+    # Through the unit quaternion: the one quaternion code is in convert.
+    return convert._quaternion_to_axis_angle(convert._matrix_to_quaternion(R))
 
 
 def log(R: Tensor) -> Tensor:
@@ -328,8 +293,8 @@ def log(R: Tensor) -> Tensor:
     return _log(R)
 
 
-# The θ-power forms _jl and _jl_inv serve the solver's hot path (terms, pose-graph factors); the
-# public functions and the manifolds use the _robust forms (bitwise equal up to |ω| = 2²⁰).
+# The θ-power forms _jl and _jl_inv are form="fast" of the public functions (hot paths); the
+# default form="robust" uses the _robust forms (bitwise equal up to |ω| = 2²⁰).
 
 
 def _jl(omega: Tensor) -> Tensor:
@@ -378,7 +343,7 @@ _JL_INV_SINGULAR = (
 )
 
 
-def jl(omega: Tensor) -> Tensor:
+def jl(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Left Jacobian of SO(3), the J of seed eq. L4.3.
 
     J_l(ω) = I + ((1 − cos θ)/θ²) [ω]× + ((θ − sin θ)/θ³) [ω]×², and
@@ -386,30 +351,34 @@ def jl(omega: Tensor) -> Tensor:
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jl", "omega", omega, (3,))
+    _check_form("so3.jl", form)
     _checks.check_finite("so3.jl", "omega", omega)
-    return _jl_robust(omega)
+    return _jl_robust(omega) if form == "robust" else _jl(omega)
 
 
-def jr(omega: Tensor) -> Tensor:
+def jr(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Right Jacobian of SO(3): jr(ω) = jl(−ω); Exp(ω + d) ≈ Exp(ω) · Exp(jr(ω) d).
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jr", "omega", omega, (3,))
+    _check_form("so3.jr", form)
     _checks.check_finite("so3.jr", "omega", omega)
-    return _jl_robust(-omega)
+    return _jl_robust(-omega) if form == "robust" else _jl(-omega)
 
 
-def jl_inv(omega: Tensor) -> Tensor:
+def jl_inv(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Inverse of :func:`jl`: I − ½[ω]× + ((1 − (θ/2)cot(θ/2))/θ²) [ω]×².
 
     Finite for θ < 2π (in particular at θ = π); singular at θ = 2πk, k ≥ 1. When value checks
@@ -417,29 +386,33 @@ def jl_inv(omega: Tensor) -> Tensor:
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jl_inv", "omega", omega, (3,))
+    _check_form("so3.jl_inv", form)
     _checks.check_finite("so3.jl_inv", "omega", omega)
-    result = _jl_inv_robust(omega)
+    result = _jl_inv_robust(omega) if form == "robust" else _jl_inv(omega)
     _checks.check_result_finite("so3.jl_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
     return result
 
 
-def jr_inv(omega: Tensor) -> Tensor:
+def jr_inv(omega: Tensor, *, form: Form = "robust") -> Tensor:
     """Inverse of :func:`jr`: jr_inv(ω) = jl_inv(−ω).
 
     Args:
         omega: rotation vectors, shape (..., 3).
+        form: "robust" (default) or "fast" (θ-power form only; see the module docstring).
 
     Returns:
         Jacobians, shape (..., 3, 3).
     """
     _checks.check_tensor("so3.jr_inv", "omega", omega, (3,))
+    _check_form("so3.jr_inv", form)
     _checks.check_finite("so3.jr_inv", "omega", omega)
-    result = _jl_inv_robust(-omega)
+    result = _jl_inv_robust(-omega) if form == "robust" else _jl_inv(-omega)
     _checks.check_result_finite("so3.jr_inv", result, reason=_JL_INV_SINGULAR, omega=omega)
     return result
 
@@ -519,3 +492,8 @@ def project(M: Tensor) -> Tensor:
     fix = torch.ones(*M.shape[:-2], 3, dtype=M.dtype, device=M.device)
     fix = torch.cat((fix[..., :2], det[..., None].sign()), dim=-1)
     return (U * fix[..., None, :]) @ Vh
+
+
+# convert holds the quaternion code that log uses; it imports this module, hence the import here
+# at the end (either module may be imported first).
+from torchslam.lie import convert  # noqa: E402
