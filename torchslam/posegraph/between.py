@@ -43,13 +43,12 @@ and are the reference the tests check them against.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
+from torchslam.manifold import right_jacobian_jacrev
 
 __all__ = [
     "between_jacobians",
@@ -74,11 +73,13 @@ def _check_poses(fn: str, **poses: Tensor) -> None:
 
 
 def _between(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
-    return se3._log(se3._inverse(Z_ij) @ (se3._inverse(T_i) @ T_j))
+    with _checks.validation(False):
+        return se3.log(se3.inverse(Z_ij) @ (se3.inverse(T_i) @ T_j))
 
 
 def _prior(T: Tensor, Z: Tensor) -> Tensor:
-    return se3._log(se3._inverse(Z) @ T)
+    with _checks.validation(False):
+        return se3.log(se3.inverse(Z) @ T)
 
 
 def between_residual(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
@@ -116,38 +117,10 @@ def between_jacobians(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> tuple[Tensor, T
     """
     _check_poses("between_jacobians", T_i=T_i, T_j=T_j, Z_ij=Z_ij)
     r = _between(T_i, T_j, Z_ij)
-    J_r_delta_j = se3._jl_inv(-r)  # Jr⁻¹(r) = Jl⁻¹(−r)
-    J_r_delta_i = -J_r_delta_j @ se3._adjoint(se3._inverse(T_j) @ T_i)
+    with _checks.validation(False):
+        J_r_delta_j = se3.jr_inv(r, form="fast")
+        J_r_delta_i = -J_r_delta_j @ se3.adjoint(se3.inverse(T_j) @ T_i)
     return r, J_r_delta_i, J_r_delta_j
-
-
-def _flat_batch(*tensors: Tensor) -> tuple[tuple[int, ...], list[Tensor]]:
-    """Broadcast (..., 4, 4) tensors together and flatten their batch dims to one."""
-    batch = torch.broadcast_shapes(*(t.shape[:-2] for t in tensors))
-    return batch, [t.expand(*batch, 4, 4).reshape(-1, 4, 4) for t in tensors]
-
-
-def _right_jacobians_jacrev(
-    residual: Callable[..., Tensor], poses: list[Tensor], constants: list[Tensor]
-) -> tuple[Tensor, ...]:
-    """∂residual(T_k·Exp(δ_k), …, constants)/∂δ_k at δ = 0 for each pose, vmapped over a batch.
-
-    ``poses`` and ``constants`` are (B, 4, 4); returns one (B, m, 6) block per pose.
-    """
-
-    def perturbed(deltas: tuple[Tensor, ...], *args: Tensor) -> Tensor:
-        Ts, cs = args[: len(poses)], args[len(poses) :]
-        return residual(*(T @ se3._exp(d) for T, d in zip(Ts, deltas, strict=True)), *cs)
-
-    batch_size = poses[0].shape[0]
-    zero = poses[0].new_zeros(batch_size, 6)
-    if batch_size == 0:
-        m = residual(*(T.new_zeros(0, 4, 4) for T in poses + constants)).shape[-1]
-        return tuple(poses[0].new_zeros(0, m, 6) for _ in poses)
-    blocks = torch.func.vmap(torch.func.jacrev(perturbed))(
-        tuple(zero for _ in poses), *poses, *constants
-    )
-    return tuple(blocks)
 
 
 def between_jacobians_jacrev(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> tuple[Tensor, Tensor]:
@@ -164,9 +137,9 @@ def between_jacobians_jacrev(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> tuple[Te
         ``(J_r_delta_i, J_r_delta_j)``, each of shape broadcast(...) + (6, 6).
     """
     _check_poses("between_jacobians_jacrev", T_i=T_i, T_j=T_j, Z_ij=Z_ij)
-    batch, (Ti, Tj, Z) = _flat_batch(T_i, T_j, Z_ij)
-    J_i, J_j = _right_jacobians_jacrev(_between, [Ti, Tj], [Z])
-    return J_i.reshape(*batch, 6, 6), J_j.reshape(*batch, 6, 6)
+    batch = torch.broadcast_shapes(T_i.shape[:-2], T_j.shape[:-2], Z_ij.shape[:-2])
+    Ti, Tj, Z = (T.expand(*batch, 4, 4) for T in (T_i, T_j, Z_ij))
+    return right_jacobian_jacrev(_between, (Ti, Tj), constants=(Z,), batch_dims=len(batch))
 
 
 def prior_residual(T: Tensor, Z: Tensor) -> Tensor:
@@ -195,7 +168,8 @@ def prior_jacobian(T: Tensor, Z: Tensor) -> tuple[Tensor, Tensor]:
     """
     _check_poses("prior_jacobian", T=T, Z=Z)
     r = _prior(T, Z)
-    return r, se3._jl_inv(-r)
+    with _checks.validation(False):
+        return r, se3.jr_inv(r, form="fast")
 
 
 def prior_jacobian_jacrev(T: Tensor, Z: Tensor) -> Tensor:
@@ -209,9 +183,14 @@ def prior_jacobian_jacrev(T: Tensor, Z: Tensor) -> Tensor:
         J_r_delta, shape broadcast(...) + (6, 6).
     """
     _check_poses("prior_jacobian_jacrev", T=T, Z=Z)
-    batch, (Tf, Zf) = _flat_batch(T, Z)
-    (J,) = _right_jacobians_jacrev(_prior, [Tf], [Zf])
-    return J.reshape(*batch, 6, 6)
+    batch = torch.broadcast_shapes(T.shape[:-2], Z.shape[:-2])
+    (J,) = right_jacobian_jacrev(
+        _prior,
+        (T.expand(*batch, 4, 4),),
+        constants=(Z.expand(*batch, 4, 4),),
+        batch_dims=len(batch),
+    )
+    return J
 
 
 def sqrt_information(information: Tensor) -> Tensor:

@@ -449,17 +449,19 @@ class _ImplicitSolution(torch.autograd.Function):
             # The chart x* ⊞ δ; fixed variables read the initial guess (their gradient path).
             dp = torch.zeros_like(xi_star, requires_grad=True)
             dl = torch.zeros_like(X_star, requires_grad=True)
-            T = torch.where(
-                data0.fixed_poses[..., None, None],
-                se3._exp(xi0_leaf),
-                se3._exp(xi_star) @ se3._exp(dp),
-            )
+            with _checks.validation(False):
+                T = torch.where(
+                    data0.fixed_poses[..., None, None],
+                    se3.exp(xi0_leaf, form="fast"),
+                    se3.exp(xi_star, form="fast") @ se3.exp(dp, form="fast"),
+                )
             X = torch.where(data0.fixed_points[..., None], X0_leaf, X_star + dl)
             F = cost_from_poses(T, X, data).sum()
             g = torch.autograd.grad(F, (dp, dl), create_graph=True)
 
             # v = (dξ*/dδ)ᵀ ḡ with dξ*/dδ = jr_inv(ξ*) = jl_inv(−ξ*) (SE3Tangent.plus_jacobian).
-            jr_inv = se3._jl_inv(-xi_star)
+            with _checks.validation(False):
+                jr_inv = se3.jr_inv(xi_star, form="fast")
             v = (
                 (grad_xi[..., None, :] @ jr_inv)[..., 0, :] * free_pose,
                 grad_X * free_point,

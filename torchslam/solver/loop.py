@@ -46,9 +46,7 @@ def retract(pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tup
     A pose whose step is exactly zero (a fixed pose) keeps its ξ bit for bit: the Log∘Exp
     round trip would move it by a few ulps.
     """
-    moved = _POSES.plus(pose_tangent, dp)
-    unmoved = (dp == 0).all(dim=-1, keepdim=True)
-    return torch.where(unmoved, pose_tangent, moved), points + dl
+    return _POSES.retract(pose_tangent, dp), points + dl
 
 
 @dataclass

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
+from torchslam._checks import validation
 from torchslam.lie import se3
 
 __all__ = ["IterationInfo", "SolveResult", "Status"]
@@ -83,7 +84,8 @@ class SolveResult:
     @property
     def poses(self) -> Tensor:
         """Optimized poses T_i0 = Exp(ξ_i), (B, m, 4, 4)."""
-        return se3._exp(self.pose_tangent)
+        with validation(False):
+            return se3.exp(self.pose_tangent, form="fast")
 
     @property
     def reason(self) -> list[str]:
