@@ -14,7 +14,7 @@ included), seconds per iteration, final cost, status and the largest pose differ
 sparse solution.
 
 Then, at m = ``--factor-poses``, the real reduced matrix S (Schur complement of the damped
-system at the initial guess, captured from :func:`torchslam.solver.linear.factorize`) is
+system at the initial guess, captured from :meth:`torchslam.solver.plan.LinearPlan.factorize`) is
 factored once sparsely (:meth:`BlockPattern.factor`: SuperLU in the precomputed
 fill-reducing order) and once densely (``torch.linalg.cholesky`` of S assembled as a dense
 6m × 6m matrix), and the speed-up is printed; both factors solve the same right-hand side as a
@@ -49,8 +49,8 @@ from torchslam import PointMapProblem, RelativePoseTerm, SolverConfig
 from torchslam.data.loop import make_loop_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
-from torchslam.solver import linear
 from torchslam.solver.linearize import linearize, whitening_factors
+from torchslam.solver.plan import LinearPlan, choose_reduced_solver
 from torchslam.solver.sparse import BlockPattern
 
 OUT = Path(__file__).resolve().parents[1] / "out" / "bench_sparse.json"
@@ -115,7 +115,7 @@ def factor_timings(problem: PointMapProblem, repeats: int) -> dict:
     xi, X = problem.pose_tangent.detach(), problem.points.detach()
     lin = linearize(xi, X, data, whitening_factors(data))
     start = time.perf_counter()
-    sparse = linear.SparseSchur.build(data)
+    plan = LinearPlan.build(data, SolverConfig(reduced_solver="sparse"))
     symbolic = time.perf_counter() - start
 
     # Capture the values of S's unique blocks where factorize hands them to the pattern.
@@ -130,12 +130,12 @@ def factor_timings(problem: PointMapProblem, repeats: int) -> dict:
     BlockPattern.factor = capture
     try:
         start = time.perf_counter()
-        linear.factorize(lin, data, None, lam, "marquardt", sparse=sparse)
+        plan.factorize(lin, lam)
         whole_factorize = time.perf_counter() - start
     finally:
         BlockPattern.factor = original
     values = captured["values"]
-    pattern = sparse.pattern
+    pattern = plan.reduced.pattern
 
     sparse_seconds = []
     for _ in range(repeats):
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         problem = build_problem(m, args.points_per_frame, args.window, args.points, args.seed)
         data = problem.data
         E, n = int(data.valid.sum()), data.num_points
-        auto = linear.choose_reduced_solver(data, "auto", SolverConfig().dense_max_variables)
+        auto = choose_reduced_solver(data, "auto", SolverConfig().dense_max_variables)
         solvers = ["sparse"] + (["dense"] if m <= args.dense_max_poses else [])
         reference = None
         for reduced in solvers:
