@@ -50,7 +50,7 @@ class SolverConfig:
     # ordering, :mod:`torchslam.solver.sparse`; for hundreds to thousands of poses with local
     # co-visibility and relative-pose terms) or "auto": sparse when 6m > dense_max_variables
     # and the symbolic factorization of S's block pattern predicts far less work than dense
-    # (linear.choose_reduced_solver).
+    # (plan.choose_reduced_solver).
     reduced_solver: Literal["auto", "dense", "sparse"] = "auto"
     # Largest reduced system 6m that "auto" always factors densely.
     dense_max_variables: int = 600
