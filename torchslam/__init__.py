@@ -26,6 +26,7 @@ from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.problem import PointMapData, PointMapProblem
 from torchslam.solver import (
     ImplicitConfig,
+    IterationInfo,
     SolverConfig,
     SolveResult,
     Status,
@@ -41,6 +42,7 @@ __all__ = [
     "CauchyLoss",
     "HuberLoss",
     "ImplicitConfig",
+    "IterationInfo",
     "PointMapData",
     "PointMapProblem",
     "PosePriorTerm",
