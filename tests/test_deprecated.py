@@ -85,3 +85,22 @@ def test_benchmark_keeps_its_measurements_without_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert callable(benchmark.run_case) and callable(benchmark.build)
+
+
+def test_iteration_info_item_access_warns_and_maps_lambda_to_damping():
+    import torch
+
+    import torchslam
+
+    seen = []
+    scene = torchslam.data.make_scene(4, 30, seed=0)
+    problem = torchslam.PointMapProblem.from_scene(scene, scene.poses_gt, scene.points_gt + 0.01)
+    torchslam.solve(problem, callback=seen.append)
+    info = seen[0]
+    assert isinstance(info, torchslam.IterationInfo)
+    with pytest.warns(DeprecationWarning, match="info.damping"):
+        assert torch.equal(info["lambda"], info.damping)
+    with pytest.warns(DeprecationWarning, match="info.cost"):
+        assert torch.equal(info["cost"], info.cost)
+    with pytest.warns(DeprecationWarning), pytest.raises(KeyError):
+        info["no such key"]

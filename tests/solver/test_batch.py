@@ -100,7 +100,7 @@ def test_a_converged_problem_stops_changing_while_the_others_go_on():
     for info in seen[k:]:
         assert not bool(info.active[early])
         assert not bool(info.accepted[early])
-    assert bool(seen[k - 1]["active"][late])
+    assert bool(seen[k - 1].active[late])
     # Its estimate is the one it had when it stopped: the same as a batched solve cut off
     # after k iterations, and as its solo solve.
     cut = torchslam.solve_tensors(
