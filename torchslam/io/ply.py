@@ -780,9 +780,18 @@ def write_ply(
     if rgb is not None:
         for i, k in enumerate(("red", "green", "blue")):
             table[k] = rgb[:, i]
-    # plyfile writes ascii values with 18 significant digits: exact on a round trip.
     byte_order = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}[format]
     vertex = plyfile.PlyElement.describe(table, "vertex")
     ply = plyfile.PlyData([vertex], text=format == "ascii", byte_order=byte_order)
     ply.comments = comments
-    ply.write(path)
+    if format != "ascii":
+        ply.write(path)
+        return
+    # plyfile writes ascii data one row at a time (1.5 s for 40,000 points): one savetxt here.
+    # 17 (9) significant digits make float64 (float32) values exact on a round trip.
+    digits = "%.17g" if coordinate_type == "double" else "%.9g"
+    columns = [table[name].astype(np.float64) for name in table.dtype.names]
+    formats = [digits] * 3 + ["%d"] * (len(columns) - 3)
+    with open(path, "wb") as f:
+        f.write((ply.header + "\n").encode("ascii"))
+        np.savetxt(f, np.stack(columns, axis=-1), fmt=formats, delimiter=" ")
