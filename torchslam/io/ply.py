@@ -1,11 +1,12 @@
 """PLY point clouds: read ascii / binary (little- and big-endian), write ascii / binary.
 
 The header is parsed and files are written by the ``plyfile`` package; the data is read here,
-vectorized with numpy. (plyfile reads ascii data and binary list properties one value at a
-time in Python: one Stanford range scan takes it 3 s, against 0.1 s for its vertices and 0.5
-s for all of it here.) The reader is generic (any elements, scalar and list properties) and
-handles the Stanford 3D Scanning Repository range scans, whose header has ``obj_info`` lines
-and whose vertices are followed by a ``range_grid`` element with a list property::
+vectorized with numpy. plyfile reads ascii data and binary list properties one line or one
+instance at a time in Python (3.3 s of CPU for one Stanford range scan, against 0.07 s for its
+vertices and 0.25 s for all of it here), and takes ``nan`` for a float. The reader is generic
+(any elements, scalar and list properties) and handles the Stanford 3D Scanning Repository
+range scans, whose header has ``obj_info`` lines and whose vertices are followed by a
+``range_grid`` element with a list property::
 
     element vertex 40256          property float x / y / z
     element range_grid 204800     property list uchar int vertex_indices
@@ -365,17 +366,17 @@ def _ascii_columns(element: PlyElement, block: list[str]) -> Columns | None:
             if lengths is None or ((lengths < 0) | (lengths >= ends - cursor)).any():
                 return None  # a negative length, or more values than the line holds
             integer_tokens.append(cursor)
-            positions, starts = _ranges(cursor + 1, lengths.astype(np.int64))
+            positions, bounds = _ranges(cursor + 1, lengths.astype(np.int64))
             cursor = cursor + 1 + lengths
         else:
-            positions, starts = cursor, None
+            positions, bounds = cursor, None
             cursor = cursor + 1
         column = _typed(values[positions], p.dtype)
         if column is None:
             return None
         if p.dtype[0] != "f":
             integer_tokens.append(positions)
-        out[p.name] = column if starts is None else _split(column, starts)
+        out[p.name] = column if bounds is None else _split(column, bounds)
     if (cursor != ends).any():
         return None  # a line too long
     if integer_tokens:
