@@ -17,14 +17,12 @@ the same machine load. On a shared machine the small sizes are the most load-sen
 
 Peak memory (honest, per configuration): every (E, mode) runs in its own fresh Python process
 (``--worker``). The process builds its inputs, warms up on a 1,000-observation problem, then
-resets the kernel's peak-RSS counter (writing "5" to /proc/self/clear_refs, Linux ≥ 4.0),
-reads its current RSS, makes the first full-size call and reads the peak RSS (VmHWM) again:
-the reported figure is peak − current, i.e. the extra resident memory the call needed,
+measures the first full-size call with ``peak_memory.PeakMemory``: the extra resident memory
+the call needed (peak RSS after a reset of the kernel's counter, minus the RSS before),
 outputs included (27·8 bytes per observation). Measuring the first full-size call of a fresh
 process matters: afterwards glibc keeps freed blocks and later calls would look cheaper.
-Where clear_refs is not writable, the fallback is the ru_maxrss delta around the same call,
-which is a lower bound (the JSON says which method was used).
-tracemalloc does not see torch's allocations, so it is not used.
+Where the counter cannot be reset, the figure is a lower bound (the JSON says which method
+was used).
 
 Run: .venv/bin/python experiments/bench_jacobians.py [--quick]   (writes out/bench_jacobians.json)
 """
@@ -36,8 +34,6 @@ import gc
 import json
 import os
 import platform
-import re
-import resource
 import statistics
 import subprocess
 import sys
@@ -45,6 +41,7 @@ import time
 from pathlib import Path
 
 import torch
+from peak_memory import PeakMemory
 
 import torchslam
 from torchslam import problem as problem_module
@@ -58,25 +55,6 @@ BYTES_PER_OBSERVATION = (18 + 9) * 8  # the two float64 blocks
 
 
 # --------------------------------------------------------------------------- worker
-
-
-def _status_kib(field: str) -> int | None:
-    """A ``kB`` field (VmRSS, VmHWM) of /proc/self/status, or None where there is none."""
-    try:
-        text = Path("/proc/self/status").read_text()
-    except OSError:
-        return None
-    match = re.search(rf"^{field}:\s+(\d+) kB", text, re.MULTILINE)
-    return int(match.group(1)) if match else None
-
-
-def _reset_peak_rss() -> bool:
-    """Reset the kernel's peak-RSS counter (VmHWM) of this process; False if not possible."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-    except OSError:
-        return False
-    return True
 
 
 def _problem(num_observations: int, seed: int) -> PointMapProblem:
@@ -116,27 +94,18 @@ def _inputs(num_observations: int, seed: int, threads: int):
 def _memory_worker(num_observations: int, mode: str, threads: int, seed: int) -> dict:
     """Extra resident memory of the first full-size call of ``mode`` in this fresh process."""
     pose_tangent, points, data = _inputs(num_observations, seed, threads)
-    exact = _reset_peak_rss()
-    rss_before = _status_kib("VmRSS")
-    maxrss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    start = time.perf_counter()
-    J_xi, J_point = problem_module.jacobian_blocks(pose_tangent, points, data, mode)
-    first_seconds = time.perf_counter() - start
-    peak = _status_kib("VmHWM")
-    if exact and rss_before is not None and peak is not None:
-        peak_kib = peak - rss_before
-        method = "VmHWM after a clear_refs reset, minus VmRSS before the call"
-    else:
-        peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - maxrss_before
-        method = "ru_maxrss delta (a lower bound)"
+    with PeakMemory() as peak:
+        start = time.perf_counter()
+        J_xi, J_point = problem_module.jacobian_blocks(pose_tangent, points, data, mode)
+        first_seconds = time.perf_counter() - start
     assert J_xi.shape == (1, num_observations, 3, 6) and J_point.shape[-2:] == (3, 3)
     return {
         "observations": num_observations,
         "mode": mode,
-        "peak_extra_mib": peak_kib / 1024,
+        "peak_extra_mib": peak.extra_mib,
         "output_mib": num_observations * BYTES_PER_OBSERVATION / 2**20,
         "first_call_seconds": first_seconds,
-        "memory_method": method,
+        "memory_method": peak.method,
     }
 
 

@@ -43,6 +43,7 @@ import time
 from pathlib import Path
 
 import torch
+from peak_memory import PeakMemory
 from torch import Tensor, nn
 
 from torchslam import CauchyLoss, HuberLoss, PointMapProblem, SolverConfig, solve_tensors
@@ -242,22 +243,6 @@ def choose_scale(scenes: Scenes, kernel) -> tuple[float, dict[str, float]]:
 # Backward pass: implicit vs unrolled on the M case
 
 
-def _rss_kib(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    return 0
-
-
-def _reset_peak() -> bool:
-    """Reset the kernel's peak-RSS counter VmHWM (Linux ≥ 4.0); False where not possible."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        return True
-    except OSError:
-        return False
-
-
 def _case(name: str):
     scene = benchmark_case(name)
     init = initialize_scene(scene, method="odometry", seed=0)  # 5° and 5 cm drift per step
@@ -287,8 +272,6 @@ def probe_backward(mode: str) -> dict:
             torch.autograd.grad(pose_loss(result.pose_tangent, scene.poses_gt), weights)
     del result
     gc.collect()
-    resettable = _reset_peak()
-    base = _rss_kib("VmRSS")
     saved = {"bytes": 0}
     storages: set[int] = set()
 
@@ -299,19 +282,21 @@ def probe_backward(mode: str) -> dict:
             saved["bytes"] += t.untyped_storage().nbytes()
         return t
 
-    start = time.perf_counter()
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        result = solve_differentiable(xi0, X0, problem.data, CONFIG, backward=mode)
-        loss = pose_loss(result.pose_tangent, scene.poses_gt)
-    forward = time.perf_counter() - start
-    start = time.perf_counter()
-    torch.autograd.grad(loss, weights)
-    backward = time.perf_counter() - start
+    with PeakMemory() as peak:
+        start = time.perf_counter()
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            result = solve_differentiable(xi0, X0, problem.data, CONFIG, backward=mode)
+            loss = pose_loss(result.pose_tangent, scene.poses_gt)
+        forward = time.perf_counter() - start
+        start = time.perf_counter()
+        torch.autograd.grad(loss, weights)
+        backward = time.perf_counter() - start
     return {
         "iterations": int(result.iterations.max()),
         "forward_seconds": forward,
         "backward_seconds": backward,
-        "peak_memory_mib": (_rss_kib("VmHWM") - base) / 1024 if resettable else float("nan"),
+        "peak_memory_mib": peak.extra_mib,
+        "peak_memory_method": peak.method,
         "graph_memory_mib": saved["bytes"] / 2**20,
     }
 

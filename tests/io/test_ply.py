@@ -161,20 +161,23 @@ def test_write_empty_cloud(tmp_path):
     [
         ("plx\nformat ascii 1.0\nend_header\n", "line 1: expected 'ply'"),
         ("ply\nformat ascii 1.0\nelement vertex 1\n", "not terminated by an 'end_header'"),
-        ("ply\nformat ascii 2.0\nend_header\n", "line 2: unsupported PLY version"),
-        ("ply\nformat utf8 1.0\nend_header\n", "line 2: expected 'format"),
+        ("ply\nformat ascii 2.0\nend_header\n", "line 2: expected version '1.0'"),
+        ("ply\nformat utf8 1.0\nend_header\n", "line 2: don't understand format 'utf8'"),
         ("ply\nformat ascii 1.0\nelement vertex x\nend_header\n", "line 3: expected 'element"),
-        ("ply\nformat ascii 1.0\nproperty float x\nend_header\n", "line 3: 'property' before"),
+        (
+            "ply\nformat ascii 1.0\nproperty float x\nend_header\n",
+            "line 3: expected one of {element, comment",
+        ),
         (
             "ply\nformat ascii 1.0\nelement vertex 1\nproperty real x\nend_header\n",
-            "line 4: expected 'property <type> <name>'",
+            "line 4: unknown property type 'real'",
         ),
         (
             "ply\nformat ascii 1.0\nelement f 1\nproperty list float int v\nend_header\n",
             "line 4: list count type must be an integer",
         ),
-        ("ply\nformat ascii 1.0\nbogus\nend_header\n", "line 3: unknown header keyword"),
-        ("ply\nelement vertex 0\nend_header\n", "no 'format' line"),
+        ("ply\nformat ascii 1.0\nbogus\nend_header\n", "line 3: expected one of {element"),
+        ("ply\nelement vertex 0\nend_header\n", "line 2: expected one of {format"),
     ],
 )
 def test_malformed_header_names_file_and_line(tmp_path, content, message):
@@ -261,3 +264,29 @@ def test_write_rejects_bad_input(tmp_path):
         write_ply(path, np.zeros((1, 3)), np.array([[0, 256, 0]]))
     with pytest.raises(ValueError, match="'format'"):
         write_ply(path, np.zeros((1, 3)), format="binary")  # type: ignore[arg-type]
+
+
+def test_negative_ascii_list_length_names_line(tmp_path):
+    content = STANFORD_ASCII.replace("0\n1 1\n", "0\n-1 1\n").replace("uchar int", "char int")
+    with pytest.raises(ValueError, match=r"line 18 \(element 'range_grid'\): expected a list len"):
+        read_ply(_write(tmp_path, "bad.ply", content))
+
+
+def test_header_text_lines_may_hold_any_text(tmp_path):
+    # UTF-8 in a comment, an obj_info line after the elements (plyfile alone refuses both).
+    content = STANFORD_ASCII.replace("obj_info num_rows 2\n", "comment Créé à Paris\n")
+    content = content.replace("end_header\n", "obj_info num_rows 2\nend_header\n")
+    data = read_ply(_write(tmp_path, "utf8.ply", content.encode("utf-8")))
+    assert data.comments == ["Créé à Paris"]
+    assert data.obj_info == ["is_cyberware_data 1", "num_cols 3", "num_rows 2"]
+    np.testing.assert_array_equal(data.points(), STANFORD_POINTS.astype(np.float32))
+
+
+def test_write_rejects_bad_comments(tmp_path):
+    path = tmp_path / "x.ply"
+    with pytest.raises(ValueError, match="write_ply: comments must be ASCII"):
+        write_ply(path, np.zeros((1, 3)), comments=["é"])
+    with pytest.raises(TypeError, match="write_ply: argument 'comments' must hold str"):
+        write_ply(path, np.zeros((1, 3)), comments=[3])  # type: ignore[list-item]
+    write_ply(path, np.zeros((1, 3)), comments="one comment")
+    assert read_ply(path).comments == ["one comment"]

@@ -1,8 +1,12 @@
 """PLY point clouds: read ascii / binary (little- and big-endian), write ascii / binary.
 
-numpy only. The reader is generic (any elements, scalar and list properties) and handles the
-Stanford 3D Scanning Repository range scans, whose header has ``obj_info`` lines and whose
-vertices are followed by a ``range_grid`` element with a list property::
+The header is parsed and files are written by the ``plyfile`` package; the data is read here,
+vectorized with numpy. plyfile reads ascii data and binary list properties one line or one
+instance at a time in Python (3.3 s of CPU for one Stanford range scan, against 0.07 s for its
+vertices and 0.25 s for all of it here), and takes ``nan`` for a float. The reader is generic
+(any elements, scalar and list properties) and handles the Stanford 3D Scanning Repository
+range scans, whose header has ``obj_info`` lines and whose vertices are followed by a
+``range_grid`` element with a list property::
 
     element vertex 40256          property float x / y / z
     element range_grid 204800     property list uchar int vertex_indices
@@ -13,14 +17,17 @@ lets error messages name the line. Values are parsed exactly as their declared t
 property takes a decimal integer within the type's range (``uchar 300`` and ``int 2.7`` are
 errors, not 44 and 2), a float property a finite decimal number that fits the type (no ``nan``,
 ``inf`` or ``1e39`` for ``float``). In binary files, float values must be finite too.
-Malformed headers (unknown keywords, missing ``format``, repeated element or property names,
-elements without properties), truncated data, data beyond the declared elements and bytes that
-are not ASCII text in an ascii body raise a ``ValueError`` that names the file and the header
-line, the data line (ascii) or the element and instance (binary).
+Malformed headers (what plyfile refuses, and besides: counts that are not decimal digits,
+repeated element or property names, names that are not printable ASCII, types outside the PLY
+specification, float list lengths, elements without properties), truncated data, data beyond
+the declared elements and bytes that are not ASCII text in an ascii body raise a
+``ValueError`` that names the file and the header line, the data line (ascii) or the element
+and instance (binary).
 """
 
 from __future__ import annotations
 
+import io
 import itertools
 import os
 import re
@@ -30,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+import plyfile
 import torch
 from torch import Tensor
 
@@ -47,7 +55,8 @@ __all__ = [
 
 PlyFormat = Literal["ascii", "binary_little_endian", "binary_big_endian"]
 
-# PLY scalar type names (both spellings of the spec) → numpy kind and size.
+# The scalar type names of the PLY specification (both spellings) → numpy kind. plyfile also
+# takes numpy codes ("f4") as type names; a PLY file does not.
 _TYPES: dict[str, str] = {
     "char": "i1",
     "int8": "i1",
@@ -79,8 +88,8 @@ _FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 _END_HEADER = re.compile(rb"(?m)^end_header[ \t]*\r?\n")
 # Element and property names: printable ASCII without white space.
 _NAME = re.compile(r"[!-~]+")
-# Characters of the tokens the vectorized ascii path handles; anything else takes the slow
-# path, which names the offending line.
+# Characters of the tokens the vectorized ascii path handles; anything else takes the
+# line-by-line path, which names the offending line.
 _NOT_NUMERIC = re.compile(r"[^0-9eE+\-. \t\r\n]")
 _NOT_INTEGER = re.compile(r"[.eE]")
 # A line of white space only (str.split's white space, less the line break).
@@ -143,134 +152,138 @@ class PlyData:
         return np.stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")], -1)
 
 
+Columns = dict[str, np.ndarray | list[np.ndarray]]
+
+
 def _error(path: str | os.PathLike, what: str) -> ValueError:
     return ValueError(f"read_ply: {os.fspath(path)}: {what}")
 
 
-def _header_lines(path: str | os.PathLike, header: bytes) -> list[str]:
-    """The header's lines (split at ``\\n`` only, ``\\r`` dropped): ASCII, except that comment
-    and obj_info lines may hold any bytes (decoded as UTF-8, invalid bytes replaced)."""
-    raw_lines = header.split(b"\n")
-    if raw_lines and raw_lines[-1] == b"":
-        raw_lines.pop()
+# ----------------------------------------------------------------------------------- header
+
+
+def _read_header(path: str, raw: bytes) -> tuple[str, tuple[PlyElement, ...], list, list, int]:
+    """Parse the header of the file contents ``raw``.
+
+    Returns the format, the elements, the comment and obj_info texts and the length of the
+    header in bytes (the body starts there).
+    """
+    match = _END_HEADER.search(raw)
+    if match is None:
+        if not raw.startswith(b"ply"):
+            raise _error(path, "line 1: not a PLY file (no 'ply' magic)")
+        raise _error(path, "header is not terminated by an 'end_header' line")
+    # The header's lines, split at "\n" only ("\r" dropped): ASCII, except that comment and
+    # obj_info lines may hold any text (decoded as UTF-8, invalid bytes replaced). plyfile, which
+    # refuses such text (and obj_info after an element), sees empty comments in their place.
+    raw_lines = raw[: match.start()].split(b"\n")[:-1]
+    texts: dict[str, list[str]] = {"comment": [], "obj_info": []}
     lines = []
-    for number, raw in enumerate(raw_lines, start=1):
-        raw = raw.removesuffix(b"\r")
-        words = raw.split(None, 1)
+    for number, line in enumerate(raw_lines, start=1):
+        words = line.split(None, 1)
         if words and words[0] in (b"comment", b"obj_info"):
-            lines.append(raw.decode("utf-8", errors="replace"))
+            rest = words[1].decode("utf-8", errors="replace").strip() if len(words) > 1 else ""
+            texts[words[0].decode()].append(rest)
+            lines.append("comment")
             continue
         try:
-            lines.append(raw.decode("ascii"))
+            lines.append(line.decode("ascii").strip())  # stripped: "ply " is the magic too
         except UnicodeDecodeError as error:
             raise _error(
                 path,
-                f"line {number}: not an ASCII PLY header line (byte 0x{raw[error.start]:02x} at "
-                f"column {error.start + 1})",
+                f"line {number}: not an ASCII PLY header line (byte 0x{line[error.start]:02x} "
+                f"at column {error.start + 1})",
             ) from None
-    return lines
+    _check_declarations(path, lines)
+    try:
+        text = "\n".join([*lines, "end_header\n"])
+        header = plyfile.PlyData._parse_header(io.StringIO(text))
+    except plyfile.PlyHeaderParseError as error:
+        raise _error(path, f"line {error.line}: {error.message}") from None
+    elements = tuple(
+        PlyElement(
+            e.name,
+            e.count,
+            tuple(
+                PlyProperty(p.name, p.val_dtype, getattr(p, "len_dtype", None))
+                for p in e.properties
+            ),
+        )
+        for e in header.elements
+    )
+    fmt = "ascii" if header.text else _FORMATS[1 if header.byte_order == "<" else 2]
+    return fmt, elements, texts["comment"], texts["obj_info"], match.end()
 
 
-def _parse_header(path: str | os.PathLike, lines: list[str]) -> tuple[str, list, list, list]:
-    """Parse header lines (without 'end_header'). Returns format, elements, comments, obj_info."""
-    if not lines or lines[0].strip() != "ply":
-        first = lines[0].strip() if lines else ""
-        raise _error(path, f"line 1: expected 'ply' magic, got {first[:40]!r}")
-    fmt: str | None = None
-    format_line = 0
-    elements: list[tuple[str, int, list[PlyProperty]]] = []
-    comments: list[str] = []
-    obj_info: list[str] = []
-    for number, raw in enumerate(lines[1:], start=2):
-        line = raw.strip()
-        if not line:
-            continue
-        keyword, _, rest = line.partition(" ")
+def _check_declarations(path: str, lines: list[str]) -> None:
+    """What plyfile's header parser lets through: element counts that are not decimal digits
+    (``-1``, ``1_0``), repeated or unprintable names, type names outside the PLY specification,
+    float list lengths, elements with instances but no properties. Lines of another shape are
+    left to plyfile."""
+    element: tuple[str, int] | None = None  # the element being declared: name, count
+    elements: set[str] = set()
+    properties: set[str] = set()
+    for number, line in enumerate(lines, start=1):
         words = line.split()
-        if keyword == "comment":
-            comments.append(rest.strip())
-        elif keyword == "obj_info":
-            obj_info.append(rest.strip())
-        elif keyword == "format":
-            if len(words) != 3 or words[1] not in _FORMATS:
-                raise _error(
-                    path,
-                    f"line {number}: expected 'format <{'|'.join(_FORMATS)}> 1.0', got {line!r}",
-                )
-            if words[2] != "1.0":
-                raise _error(path, f"line {number}: unsupported PLY version {words[2]!r}")
-            if fmt is not None:
-                raise _error(path, f"line {number}: second 'format' line (first: {format_line})")
-            fmt, format_line = words[1], number
-        elif keyword == "element":
-            if len(words) != 3 or not re.fullmatch("[0-9]+", words[2]):
+        if words[:1] == ["element"] and len(words) == 3:
+            _check_has_properties(path, number, element, properties)
+            name, count = words[1], words[2]
+            if not re.fullmatch("[0-9]+", count):
                 raise _error(
                     path, f"line {number}: expected 'element <name> <count>', got {line[:80]!r}"
                 )
-            _check_name(path, number, "element", words[1])
-            if any(words[1] == e[0] for e in elements):
-                raise _error(path, f"line {number}: element {words[1]!r} declared twice")
-            _check_element_has_properties(path, elements, number)
-            elements.append((words[1], int(words[2]), []))
-        elif keyword == "property":
-            if not elements:
-                raise _error(path, f"line {number}: 'property' before any 'element'")
-            props = elements[-1][2]
-            if len(words) >= 2 and words[1] == "list":
-                if len(words) != 5 or words[2] not in _TYPES or words[3] not in _TYPES:
+            _check_name(path, number, "element", name)
+            if name in elements:
+                raise _error(path, f"line {number}: element {name!r} declared twice")
+            elements.add(name)
+            element, properties = (name, int(count)), set()
+        elif words[:1] == ["property"] and element is not None and len(words) in (3, 5):
+            types, name = words[1:-1], words[-1]
+            if len(words) == 5:
+                if types[0] != "list":
+                    continue  # plyfile names the error
+                types = types[1:]
+            for type_name in types:
+                if type_name not in _TYPES:
                     raise _error(
                         path,
-                        f"line {number}: expected 'property list <count type> <type> "
-                        f"<name>', got {line!r}",
+                        f"line {number}: unknown property type {type_name[:40]!r}",
                     )
-                if _TYPES[words[2]][0] == "f":
-                    raise _error(path, f"line {number}: list count type must be an integer")
-                prop = PlyProperty(words[4], _TYPES[words[3]], _TYPES[words[2]])
-            else:
-                if len(words) != 3 or words[1] not in _TYPES:
-                    raise _error(
-                        path,
-                        f"line {number}: expected 'property <type> <name>', got {line[:80]!r}",
-                    )
-                prop = PlyProperty(words[2], _TYPES[words[1]])
-            _check_name(path, number, "property", prop.name)
-            if any(prop.name == q.name for q in props):
+            if len(types) == 2 and _TYPES[types[0]][0] == "f":
+                raise _error(path, f"line {number}: list count type must be an integer")
+            _check_name(path, number, "property", name)
+            if name in properties:
                 raise _error(
                     path,
-                    f"line {number}: property {prop.name!r} declared twice in element "
-                    f"{elements[-1][0]!r}",
+                    f"line {number}: property {name!r} declared twice in element {element[0]!r}",
                 )
-            props.append(prop)
-        else:
-            raise _error(path, f"line {number}: unknown header keyword {keyword[:40]!r}")
-    _check_element_has_properties(path, elements, len(lines) + 1)
-    if fmt is None:
-        raise _error(path, "header has no 'format' line")
-    return fmt, elements, comments, obj_info
+            properties.add(name)
+    _check_has_properties(path, len(lines) + 1, element, properties)
 
 
-def _check_name(path: str | os.PathLike, number: int, what: str, name: str) -> None:
+def _check_name(path: str, number: int, what: str, name: str) -> None:
     if not _NAME.fullmatch(name):
         raise _error(path, f"line {number}: {what} name {name!r} is not printable ASCII")
 
 
-def _check_element_has_properties(path: str | os.PathLike, elements: list, number: int) -> None:
-    """The last declared element (if any) must have properties unless it has no instances."""
-    if elements and elements[-1][1] > 0 and not elements[-1][2]:
-        name, count = elements[-1][0], elements[-1][1]
+def _check_has_properties(
+    path: str, number: int, element: tuple[str, int] | None, properties: set[str]
+) -> None:
+    """The element declared last (if any) must have properties unless it has no instances."""
+    if element is not None and element[1] > 0 and not properties:
         raise _error(
             path,
-            f"line {number}: element {name!r} declares {count} instances but no properties",
+            f"line {number}: element {element[0]!r} declares {element[1]} instances but no "
+            "properties",
         )
 
 
-def _parse_ascii(
-    path: str | os.PathLike,
-    body: bytes,
-    first_line: int,
-    elements: Sequence[PlyElement],
-    wanted: set[str],
-) -> dict[str, dict[str, np.ndarray | list[np.ndarray]]]:
+# ------------------------------------------------------------------------------------ ascii
+
+
+def _read_ascii(
+    path: str, body: bytes, first_line: int, elements: Sequence[PlyElement], wanted: set[str]
+) -> dict[str, Columns]:
     try:
         text = body.decode("ascii")
     except UnicodeDecodeError as error:
@@ -298,7 +311,7 @@ def _parse_ascii(
     # Elements after the last requested one are not checked (a Stanford scan's range grid).
     wanted_positions = [i for i, e in enumerate(elements) if e.name in wanted]
     stop = wanted_positions[-1] + 1 if wanted_positions else 0
-    out: dict[str, dict[str, np.ndarray | list[np.ndarray]]] = {}
+    out: dict[str, Columns] = {}
     cursor = 0
     for element in elements[:stop]:
         block = lines[cursor : cursor + element.count]
@@ -311,8 +324,103 @@ def _parse_ascii(
         block_numbers = numbers[cursor : cursor + element.count]
         cursor += element.count
         if element.name in wanted:
-            out[element.name] = _parse_ascii_element(path, element, block, block_numbers)
+            columns = _ascii_columns(element, block)
+            if columns is None:  # something is off: find it and name its line
+                columns = _ascii_columns_by_line(path, element, block, block_numbers)
+            out[element.name] = columns
     return out
+
+
+def _ascii_columns(element: PlyElement, block: list[str]) -> Columns | None:
+    """Vectorized parse of an element's lines: every token converted at once, each property
+    found on every line by a cursor array (one entry per line) that steps over a scalar or a
+    list (its length, then its values). None when anything is off (the caller then parses line
+    by line, which finds and names the problem)."""
+    text = "\n".join(block)
+    if _NOT_NUMERIC.search(text):
+        return None  # letters (nan, inf, garbage) or other characters
+    tokens = text.split()
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:  # e.g. "1-2" or "."
+        return None
+    # Tokens per line, without a Python loop over the lines: a token starts at a character
+    # that is not white space and follows white space (or opens the text).
+    # (After the _NOT_NUMERIC test, white space is the only text at or below " ".)
+    chars = np.frombuffer(text.encode("ascii"), dtype=np.uint8)
+    space = chars <= ord(" ")
+    starts = ~space
+    starts[1:] &= space[:-1]
+    line_breaks = np.flatnonzero(chars == ord("\n"))
+    line_of_token = np.searchsorted(line_breaks, np.flatnonzero(starts))
+    widths = np.bincount(line_of_token, minlength=len(block))
+    ends = np.cumsum(widths)
+    cursor = ends - widths  # the first token of each line
+    out: Columns = {}
+    integer_tokens = []  # positions of the tokens that must be integer literals
+    for p in element.properties:
+        if (cursor >= ends).any():
+            return None  # a line too short
+        if p.is_list:
+            lengths = _typed(values[cursor], p.count_dtype)
+            if lengths is None or ((lengths < 0) | (lengths >= ends - cursor)).any():
+                return None  # a negative length, or more values than the line holds
+            integer_tokens.append(cursor)
+            positions, bounds = _ranges(cursor + 1, lengths.astype(np.int64))
+            cursor = cursor + 1 + lengths
+        else:
+            positions, bounds = cursor, None
+            cursor = cursor + 1
+        column = _typed(values[positions], p.dtype)
+        if column is None:
+            return None
+        if p.dtype[0] != "f":
+            integer_tokens.append(positions)
+        out[p.name] = column if bounds is None else _split(column, bounds)
+    if (cursor != ends).any():
+        return None  # a line too long
+    if integer_tokens:
+        positions = np.concatenate(integer_tokens)
+        if len(positions) < len(tokens):
+            text = " ".join(map(tokens.__getitem__, positions.tolist()))
+        if _NOT_INTEGER.search(text):
+            return None  # "2.7" or "1e3" for an integer
+    return out
+
+
+def _ranges(starts: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The positions start, start + 1, …, start + length − 1 of every range, concatenated, and
+    where each range starts in the result (length len(starts) + 1)."""
+    offsets = np.zeros(len(lengths) + 1, dtype=np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    positions = np.repeat(starts - offsets[:-1], lengths) + np.arange(offsets[-1])
+    return positions, offsets
+
+
+def _split(values: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
+    """``values`` cut at ``offsets`` (from :func:`_ranges`) into one array per instance."""
+    bounds = offsets.tolist()
+    return [values[a:b] for a, b in itertools.pairwise(bounds)]
+
+
+def _typed(values: np.ndarray, kind: str) -> np.ndarray | None:
+    """float64 values of ascii tokens as an array of ``kind``; None if any value does not fit
+    (a float that overflows, an integer out of range or with a fraction)."""
+    if kind[0] == "f":
+        ok = _fits_float32(values) if kind == "f4" else np.isfinite(values)
+        return values.astype(kind) if ok.all() else None
+    low, high = _INTEGER_RANGES[kind]
+    if values.size and (values.min() < low or values.max() > high):
+        return None
+    if (values != np.floor(values)).any():
+        return None
+    return values.astype(kind)
+
+
+def _fits_float32(values: np.ndarray) -> np.ndarray:
+    """Finite float64 values that stay finite when rounded to float32."""
+    with np.errstate(over="ignore"):
+        return np.isfinite(values.astype(np.float32))
 
 
 def _ascii_value(token: str, kind: str) -> int | float:
@@ -326,71 +434,38 @@ def _ascii_value(token: str, kind: str) -> int | float:
     return _text.parse_integer(token, low, high, f"an integer of type {_TYPE_NAMES[kind]}")
 
 
-def _typed_column(tokens: list[str], kind: str) -> np.ndarray | None:
-    """Tokens that passed the _NOT_NUMERIC test as an array of ``kind``; None if any value
-    does not parse exactly as that type (the caller's slow path then names it)."""
-    try:
-        values = np.array(tokens, dtype=np.float64)
-    except ValueError:
-        return None
-    if kind[0] == "f":
-        ok = _fits_float32(values) if kind == "f4" else np.isfinite(values)
-        if not ok.all():
-            return None
-    else:
-        low, high = _INTEGER_RANGES[kind]
-        if values.size and (values.min() < low or values.max() > high):
-            return None
-        if _NOT_INTEGER.search(" ".join(tokens)):
-            return None
-    return values.astype(kind)
-
-
-def _fits_float32(values: np.ndarray) -> np.ndarray:
-    """Finite float64 values that stay finite when rounded to float32."""
-    with np.errstate(over="ignore"):
-        return np.isfinite(values.astype(np.float32))
-
-
-def _parse_ascii_element(
-    path: str | os.PathLike, element: PlyElement, block: list[str], numbers: Sequence[int]
-) -> dict[str, np.ndarray | list[np.ndarray]]:
+def _ascii_columns_by_line(
+    path: str, element: PlyElement, block: list[str], numbers: Sequence[int]
+) -> Columns:
+    """One line at a time, every token checked exactly: the error names the offending line."""
     props = element.properties
-    if any(p.is_list for p in props):
-        fast = _parse_ascii_rows(element, block)
-    else:
-        fast = _parse_ascii_table(element, block)
-    if fast is not None:
-        return fast
-    # One line at a time: exact checks, and the message names the offending line.
+    width = "more values" if any(p.is_list for p in props) else f"{len(props)} values"
     columns: dict[str, list] = {p.name: [] for p in props}
     for line, number in zip(block, numbers, strict=True):
         tokens = line.split()
         pos = 0
         try:
             for p in props:
-                if p.is_list:
-                    if pos >= len(tokens):
+                if pos >= len(tokens):
+                    if p.is_list:
                         raise _text.TokenError(f"list '{p.name}': missing its length")
-                    count_max = _INTEGER_RANGES[p.count_dtype][1]
-                    n = _text.parse_integer(
-                        tokens[pos], 0, count_max, f"a list length (≥ 0) for '{p.name}'"
-                    )
-                    values = tokens[pos + 1 : pos + 1 + n]
-                    if len(values) != n:
-                        raise _text.TokenError(
-                            f"list '{p.name}': expected {n} values, got {len(values)}"
-                        )
-                    parsed = [_ascii_value(v, p.dtype) for v in values]
-                    columns[p.name].append(np.array(parsed, dtype=np.float64).astype(p.dtype))
-                    pos += 1 + n
-                else:
-                    if pos >= len(tokens):
-                        raise _text.TokenError(
-                            f"expected {_width_text(props)}, got {len(tokens)} values"
-                        )
+                    raise _text.TokenError(f"expected {width}, got {len(tokens)} values")
+                if not p.is_list:
                     columns[p.name].append(_ascii_value(tokens[pos], p.dtype))
                     pos += 1
+                    continue
+                count_max = _INTEGER_RANGES[p.count_dtype][1]
+                n = _text.parse_integer(
+                    tokens[pos], 0, count_max, f"a list length (≥ 0) for '{p.name}'"
+                )
+                values = tokens[pos + 1 : pos + 1 + n]
+                if len(values) != n:
+                    raise _text.TokenError(
+                        f"list '{p.name}': expected {n} values, got {len(values)}"
+                    )
+                parsed = [_ascii_value(v, p.dtype) for v in values]
+                columns[p.name].append(np.array(parsed, dtype=np.float64).astype(p.dtype))
+                pos += 1 + n
         except _text.TokenError as error:
             raise _error(path, f"line {number} (element '{element.name}'): {error}") from None
         if pos != len(tokens):
@@ -409,157 +484,121 @@ def _parse_ascii_element(
     }
 
 
-def _width_text(props: Sequence[PlyProperty]) -> str:
-    if any(p.is_list for p in props):
-        return "more values"
-    return f"{len(props)} values"
+# ----------------------------------------------------------------------------------- binary
+
+_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
 
 
-def _parse_ascii_table(
-    element: PlyElement, block: list[str]
-) -> dict[str, np.ndarray | list[np.ndarray]] | None:
-    """Vectorized parse of an element of scalar properties; None when anything is off (the
-    caller then parses line by line, which finds and names the problem)."""
-    props = element.properties
-    width = len(props)
-    text = " ".join(block)
-    if _NOT_NUMERIC.search(text):
-        return None  # letters (nan, inf, garbage) or other characters
-    tokens = text.split()
-    # Per-line token counts too: equal totals could hide a short and a long line.
-    if len(tokens) != width * len(block) or any(len(line.split()) != width for line in block):
-        return None
-    out: dict[str, np.ndarray | list[np.ndarray]] = {}
-    for i, p in enumerate(props):
-        column = _typed_column(tokens[i::width], p.dtype)
-        if column is None:
-            return None
-        out[p.name] = column
-    return out
-
-
-def _parse_ascii_rows(
-    element: PlyElement, block: list[str]
-) -> dict[str, np.ndarray | list[np.ndarray]] | None:
-    """Faster parse of an element with list properties (one Python loop over the lines, the
-    type checks vectorized); None when anything is off, as for :func:`_parse_ascii_table`."""
-    props = element.properties
-    if _NOT_NUMERIC.search(" ".join(block)):
-        return None
-    tokens_of: dict[str, list] = {p.name: [] for p in props}
-    lengths: dict[str, list[int]] = {p.name: [] for p in props if p.is_list}
-    try:
-        for line in block:
-            tokens = line.split()
-            pos = 0
-            for p in props:
-                if p.is_list:
-                    n = int(tokens[pos])
-                    end = pos + 1 + n
-                    if n < 0 or end > len(tokens):
-                        return None
-                    tokens_of[p.name].extend(tokens[pos + 1 : end])
-                    lengths[p.name].append(n)
-                    pos = end
-                else:
-                    tokens_of[p.name].append(tokens[pos])
-                    pos += 1
-            if pos != len(tokens):
-                return None
-    except (IndexError, ValueError):
-        return None
-    out: dict[str, np.ndarray | list[np.ndarray]] = {}
-    for p in props:
-        values = _typed_column(tokens_of[p.name], p.dtype)
-        if values is None:
-            return None
-        if p.is_list:
-            sizes = lengths[p.name]
-            if sizes and max(sizes) > _INTEGER_RANGES[p.count_dtype][1]:
-                return None
-            ends = list(itertools.accumulate(sizes))
-            out[p.name] = [values[e - n : e] for n, e in zip(sizes, ends, strict=True)]
+def _read_binary(
+    path: str, body: bytes, order: str, elements: Sequence[PlyElement], wanted: set[str]
+) -> dict[str, Columns]:
+    out: dict[str, Columns] = {}
+    offset = 0
+    for index, element in enumerate(elements):
+        if not (wanted & {e.name for e in elements[index:]}):
+            break  # nothing requested from here on (a Stanford scan's range grid)
+        keep = element.name in wanted
+        if any(p.is_list for p in element.properties):
+            offset, columns = _binary_lists(path, body, offset, order, element, keep)
         else:
-            out[p.name] = values
+            record = np.dtype([(p.name, order + p.dtype) for p in element.properties])
+            size = record.itemsize * element.count
+            if offset + size > len(body):
+                got = (len(body) - offset) // max(record.itemsize, 1)
+                raise _error(
+                    path,
+                    f"element '{element.name}': truncated binary data, expected "
+                    f"{element.count} instances of {record.itemsize} bytes, found {got}",
+                )
+            table = np.frombuffer(body, record, element.count if keep else 0, offset)
+            columns = {p.name: table[p.name].astype(p.dtype) for p in element.properties}
+            offset += size
+        if keep:
+            _check_finite(path, element, columns)
+            out[element.name] = columns
+        if index == len(elements) - 1 and offset != len(body):
+            raise _error(
+                path,
+                f"{len(body) - offset} byte(s) of data beyond the declared elements (the last, "
+                f"'{element.name}', ends at byte {offset} of the body)",
+            )
     return out
 
 
-_STRUCT_CODES = {
-    "i1": "b",
-    "u1": "B",
-    "i2": "h",
-    "u2": "H",
-    "i4": "i",
-    "u4": "I",
-    "f4": "f",
-    "f8": "d",
-}
-
-
-def _parse_binary_rows(
-    path: str | os.PathLike,
-    body: bytes,
-    offset: int,
-    order: str,
-    element: PlyElement,
-    keep: bool,
-) -> tuple[int, dict[str, np.ndarray | list[np.ndarray]]]:
-    """Walk the instances of an element with list properties (sequential: sizes vary)."""
+def _binary_lists(
+    path: str, body: bytes, offset: int, order: str, element: PlyElement, keep: bool
+) -> tuple[int, Columns]:
+    """An element with list properties: one pass over the instances finds where each value
+    starts (sequential, as the list lengths vary), then every property is gathered at once.
+    Returns the offset after the element and (with ``keep``) its columns."""
     props = element.properties
-    columns: dict[str, list] = {p.name: [] for p in props}
-    unpackers = []
-    for p in props:
-        value = struct.Struct(order + _STRUCT_CODES[p.dtype])
-        count = struct.Struct(order + _STRUCT_CODES[p.count_dtype]) if p.is_list else None
-        unpackers.append((p, count, value))
-    size = len(body)
+    steps = [
+        (
+            struct.Struct(order + _STRUCT_CODES[p.count_dtype]) if p.is_list else None,
+            np.dtype(p.dtype).itemsize,
+        )
+        for p in props
+    ]
+    starts: list[list[int]] = [[] for _ in props]  # byte offset of each instance's value(s)
+    lengths: list[list[int]] = [[] for _ in props]  # list lengths (list properties)
     instance = 0
     try:
         for instance in range(element.count):
-            for p, count, value in unpackers:
-                if count is None:
-                    item = value.unpack_from(body, offset)[0]
-                    offset += value.size
-                else:
-                    n = count.unpack_from(body, offset)[0]
-                    offset += count.size
-                    if n < 0:
-                        raise _error(
-                            path,
-                            f"element '{element.name}', instance {instance}: list "
-                            f"'{p.name}' has a negative length {n}",
-                        )
-                    end = offset + n * value.size
-                    if end > size:
-                        raise struct.error("truncated")
-                    item = np.frombuffer(body, order + p.dtype, n, offset).astype(p.dtype)
-                    if p.dtype[0] == "f" and not np.isfinite(item).all():
-                        raise _error(
-                            path,
-                            f"element '{element.name}', instance {instance}: list "
-                            f"'{p.name}' holds a non-finite value",
-                        )
-                    offset = end
-                if keep:
-                    columns[p.name].append(item)
+            for k, (counter, itemsize) in enumerate(steps):
+                if counter is None:
+                    starts[k].append(offset)
+                    offset += itemsize
+                    continue
+                n = counter.unpack_from(body, offset)[0]
+                if n < 0:
+                    raise _error(
+                        path,
+                        f"element '{element.name}', instance {instance}: list "
+                        f"'{props[k].name}' has a negative length {n}",
+                    )
+                offset += counter.size
+                starts[k].append(offset)
+                lengths[k].append(n)
+                offset += n * itemsize
+            if offset > len(body):
+                raise struct.error("truncated")
     except struct.error:
         raise _error(
             path,
             f"element '{element.name}': truncated binary data at instance {instance} "
             f"of {element.count}",
         ) from None
-    result = {
-        p.name: columns[p.name] if p.is_list else np.array(columns[p.name], dtype=p.dtype)
-        for p in props
-    }
-    if keep:
-        _check_finite(path, element, result)
-    return offset, result
+    if not keep:
+        return offset, {}
+    data = np.frombuffer(body, np.uint8)
+    out: Columns = {}
+    for p, (counter, itemsize), first, n in zip(props, steps, starts, lengths, strict=True):
+        dtype = np.dtype(order + p.dtype)
+        if counter is None:
+            out[p.name] = _gather(data, np.array(first, dtype=np.int64), dtype).astype(p.dtype)
+            continue
+        sizes = np.array(n, dtype=np.int64)
+        within, bounds = _ranges(np.zeros_like(sizes), sizes)  # value j of each list: j
+        byte_positions = np.repeat(np.array(first, dtype=np.int64), sizes) + within * itemsize
+        values = _gather(data, byte_positions, dtype).astype(p.dtype)
+        if p.dtype[0] == "f" and not np.isfinite(values).all():
+            bad = int(np.searchsorted(bounds, np.argmin(np.isfinite(values)), side="right")) - 1
+            raise _error(
+                path,
+                f"element '{element.name}', instance {bad}: list '{p.name}' holds a "
+                "non-finite value",
+            )
+        out[p.name] = _split(values, bounds)
+    return offset, out
 
 
-def _check_finite(
-    path: str | os.PathLike, element: PlyElement, columns: dict[str, np.ndarray | list]
-) -> None:
+def _gather(data: np.ndarray, positions: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """The values of ``dtype`` that start at the byte ``positions`` of ``data`` (uint8)."""
+    raw = data[positions[:, None] + np.arange(dtype.itemsize)]
+    return raw.view(dtype).reshape(-1)
+
+
+def _check_finite(path: str, element: PlyElement, columns: Columns) -> None:
     """Binary float values must be finite: name the first instance holding a NaN or ±Inf."""
     for p in element.properties:
         values = columns[p.name]
@@ -575,46 +614,7 @@ def _check_finite(
             )
 
 
-def _parse_binary(
-    path: str | os.PathLike,
-    body: bytes,
-    order: str,
-    elements: Sequence[PlyElement],
-    wanted: set[str],
-) -> dict[str, dict[str, np.ndarray | list[np.ndarray]]]:
-    out: dict[str, dict[str, np.ndarray | list[np.ndarray]]] = {}
-    offset = 0
-    for index, element in enumerate(elements):
-        if not (wanted & {e.name for e in elements[index:]}):
-            break
-        props = element.properties
-        if not any(p.is_list for p in props):
-            record = np.dtype([(p.name, order + p.dtype) for p in props])
-            size = record.itemsize * element.count
-            if offset + size > len(body):
-                got = (len(body) - offset) // max(record.itemsize, 1)
-                raise _error(
-                    path,
-                    f"element '{element.name}': truncated binary data, expected "
-                    f"{element.count} instances of {record.itemsize} bytes, found {got}",
-                )
-            if element.name in wanted:
-                table = np.frombuffer(body, dtype=record, count=element.count, offset=offset)
-                out[element.name] = {p.name: table[p.name].astype(p.dtype) for p in props}
-                _check_finite(path, element, out[element.name])
-            offset += size
-        else:
-            keep = element.name in wanted
-            offset, columns = _parse_binary_rows(path, body, offset, order, element, keep)
-            if keep:
-                out[element.name] = columns
-        if index == len(elements) - 1 and offset != len(body):
-            raise _error(
-                path,
-                f"{len(body) - offset} byte(s) of data beyond the declared elements (the last, "
-                f"'{element.name}', ends at byte {offset} of the body)",
-            )
-    return out
+# ----------------------------------------------------------------------------------- public
 
 
 def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> PlyData:
@@ -656,31 +656,23 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
                 )
     with open(path, "rb") as f:
         raw = f.read()
-    match = _END_HEADER.search(raw)
-    if match is None:
-        if not raw.startswith(b"ply"):
-            raise _error(path, "line 1: not a PLY file (no 'ply' magic)")
-        raise _error(path, "header is not terminated by an 'end_header' line")
-    # Split at "\n" only (splitlines would also split at form feeds, shifting line numbers).
-    header_lines = _header_lines(path, raw[: match.start()])
-    fmt, declared, comments, obj_info = _parse_header(path, header_lines)
-    element_list = tuple(PlyElement(n, c, tuple(p)) for n, c, p in declared)
-    names = [e.name for e in element_list]
+    fmt, declared, comments, obj_info, body_start = _read_header(path, raw)
+    names = [e.name for e in declared]
     wanted = set(names) if elements is None else set(elements)
     missing = wanted - set(names)
     if missing:
-        raise ValueError(
-            f"read_ply: {os.fspath(path)}: requested element(s) {sorted(missing)} not declared; "
-            f"the file declares {names}"
+        raise _error(
+            path,
+            f"requested element(s) {sorted(missing)} not declared; the file declares {names}",
         )
-    body = raw[match.end() :]
+    body = raw[body_start:]
     if fmt == "ascii":
-        first_line = len(header_lines) + 2  # the 1-based line after 'end_header'
-        data = _parse_ascii(path, body, first_line, element_list, wanted)
+        first_line = raw.count(b"\n", 0, body_start) + 1  # the 1-based line after 'end_header'
+        data = _read_ascii(path, body, first_line, declared, wanted)
     else:
         order = "<" if fmt == "binary_little_endian" else ">"
-        data = _parse_binary(path, body, order, element_list, wanted)
-    return PlyData(fmt, element_list, data, comments, obj_info)
+        data = _read_binary(path, body, order, declared, wanted)
+    return PlyData(fmt, declared, data, comments, obj_info)
 
 
 def read_ply_points(path: str | os.PathLike, *, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -733,11 +725,12 @@ def write_ply(
             float input in [0, 1] is scaled by 255 and rounded.
         format: ``"binary_little_endian"`` (default), ``"binary_big_endian"`` or ``"ascii"``.
         coordinate_type: ``"double"`` (default, lossless for float64) or ``"float"``.
-        comments: header comment lines (no newlines).
+        comments: header comment lines (ASCII, no newlines).
 
     Raises:
         ValueError: wrong shapes, non-finite points (or points that overflow ``float``), colours
-            outside 0..255, comments with newlines, an unknown format.
+            outside 0..255, comments with newlines or non-ASCII text, an unknown format.
+        TypeError: points that are not real numbers, comments that are not str.
     """
     path = _checks.check_path("write_ply", path)
     pts = points.detach().cpu().numpy() if isinstance(points, Tensor) else np.asarray(points)
@@ -766,39 +759,40 @@ def write_ply(
         elif rgb.size and (rgb.min() < 0 or rgb.max() > 255):
             raise ValueError("write_ply: integer 'colors' must lie in 0..255")
         rgb = rgb.astype(np.uint8)
+    comments = list(comments) if not isinstance(comments, str) else [comments]
     for comment in comments:
+        if not isinstance(comment, str):
+            raise TypeError(
+                f"write_ply: argument 'comments' must hold str, got {_checks.describe(comment)}"
+            )
         if "\n" in comment or "\r" in comment:
             raise ValueError("write_ply: comments must not contain newlines")
-    header = ["ply", f"format {format} 1.0"]
-    header += [f"comment {c}" for c in comments]
-    header += [f"element vertex {pts.shape[0]}"]
-    header += [f"property {coordinate_type} {k}" for k in ("x", "y", "z")]
-    if rgb is not None:
-        header += [f"property uchar {k}" for k in ("red", "green", "blue")]
-    header += ["end_header"]
+        if not comment.isascii():
+            raise ValueError(f"write_ply: comments must be ASCII text, got {comment[:40]!r}")
     coord = "f8" if coordinate_type == "double" else "f4"
     if coord == "f4" and not _fits_float32(pts.astype(np.float64)).all():
         raise ValueError("write_ply: argument 'points' overflows coordinate_type 'float'")
+    fields = [(k, coord) for k in ("x", "y", "z")]
+    if rgb is not None:
+        fields += [(k, "u1") for k in ("red", "green", "blue")]
+    table = np.empty(pts.shape[0], dtype=np.dtype(fields))
+    for i, k in enumerate(("x", "y", "z")):
+        table[k] = pts[:, i]
+    if rgb is not None:
+        for i, k in enumerate(("red", "green", "blue")):
+            table[k] = rgb[:, i]
+    byte_order = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}[format]
+    vertex = plyfile.PlyElement.describe(table, "vertex")
+    ply = plyfile.PlyData([vertex], text=format == "ascii", byte_order=byte_order)
+    ply.comments = comments
+    if format != "ascii":
+        ply.write(path)
+        return
+    # plyfile writes ascii data one row at a time (1.5 s for 40,000 points): one savetxt here.
+    # 17 (9) significant digits make float64 (float32) values exact on a round trip.
+    digits = "%.17g" if coordinate_type == "double" else "%.9g"
+    columns = [table[name].astype(np.float64) for name in table.dtype.names]
+    formats = [digits] * 3 + ["%d"] * (len(columns) - 3)
     with open(path, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        if format == "ascii":
-            # 17 (9) significant digits make float64 (float32) values exact on a round trip.
-            digits = "%.17g" if coordinate_type == "double" else "%.9g"
-            table = pts.astype(coord).astype(np.float64)
-            fmt = [digits] * 3
-            if rgb is not None:
-                table = np.concatenate((table, rgb.astype(np.float64)), axis=1)
-                fmt += ["%d"] * 3
-            np.savetxt(f, table, fmt=fmt, delimiter=" ")
-        else:
-            order = "<" if format == "binary_little_endian" else ">"
-            fields = [(k, order + coord) for k in ("x", "y", "z")]
-            if rgb is not None:
-                fields += [(k, "u1") for k in ("red", "green", "blue")]
-            table = np.empty(pts.shape[0], dtype=np.dtype(fields))
-            for i, k in enumerate(("x", "y", "z")):
-                table[k] = pts[:, i]
-            if rgb is not None:
-                for i, k in enumerate(("red", "green", "blue")):
-                    table[k] = rgb[:, i]
-            f.write(table.tobytes())
+        f.write((ply.header + "\n").encode("ascii"))
+        np.savetxt(f, np.stack(columns, axis=-1), fmt=formats, delimiter=" ")
