@@ -43,6 +43,7 @@ from torchslam.solver.linearize import (
     BlockLinearization,
     StructuredLinearization,
     blocks_from_monomials,
+    coupling_edges,
     monomials,
     term_pair_keys,
 )
@@ -81,18 +82,15 @@ class SchurStructure:
 
     @staticmethod
     def build(data: PointMapData) -> SchurStructure:
-        B, E = data.pose_index.shape
+        edges = coupling_edges(data)
+        B, E = edges.pose_index.shape
         m, n = data.num_poses, data.num_points
-        device = data.pose_index.device
+        device = edges.pose_index.device
         batch = torch.arange(B, device=device)[:, None].expand(B, E)
-        # Observations that couple a free pose with a free point.
-        active = (
-            data.valid
-            & ~torch.gather(data.fixed_poses, 1, data.pose_index)
-            & ~torch.gather(data.fixed_points, 1, data.point_index)
-        ).reshape(-1)
+        # Edges that couple a free pose with a free point.
+        active = edges.active.reshape(-1)
         obs = active.nonzero().squeeze(1)
-        point_key = (batch * n + data.point_index).reshape(-1)[obs]
+        point_key = (batch * n + edges.point_index).reshape(-1)[obs]
         order = torch.argsort(point_key, stable=True)
         obs, point_key = obs[order], point_key[order]
         _, counts = torch.unique_consecutive(point_key, return_counts=True)
@@ -106,7 +104,7 @@ class SchurStructure:
         )
         second_pos = per_obs_start[first_pos] + offset
         first, second = obs[first_pos], obs[second_pos]
-        pose_flat = data.pose_index.reshape(-1)
+        pose_flat = edges.pose_index.reshape(-1)
         i_a, i_b = pose_flat[first], pose_flat[second]
         keep = (i_a < i_b) | ((i_a == i_b) & (first <= second))
         first, second, i_a, i_b = first[keep], second[keep], i_a[keep], i_b[keep]
@@ -117,7 +115,7 @@ class SchurStructure:
             block=(b * m + i_a) * m + i_b,
             self_pair=first == second,
             same_pose=i_a == i_b,
-            point=data.flat_point_index.reshape(-1)[first],
+            point=(batch * n + edges.point_index).reshape(-1)[first],
         )
 
     @property
@@ -273,11 +271,16 @@ def choose_reduced_solver(
     if 6 * m <= dense_max_variables:
         return "dense"
     B = data.pose_index.shape[0]
-    counts = torch.bincount(data.flat_point_index[data.valid], minlength=B * n).reshape(B, -1)
+    edges = coupling_edges(data)
+    batch = torch.arange(B, device=edges.point_index.device)[:, None]
+    flat_point = (batch * n + edges.point_index)[edges.active]
+    counts = torch.bincount(flat_point, minlength=B * n).reshape(B, -1)
     if int((counts * (counts + 1) // 2).sum()) > max_pairs:
         return "dense"
     keys = term_pair_keys(data).cpu()
-    pose, point, valid = (t.cpu().numpy() for t in (data.pose_index, data.point_index, data.valid))
+    pose, point, valid = (
+        t.cpu().numpy() for t in (edges.pose_index, edges.point_index, edges.active)
+    )
     for b in range(B):
         A = scipy.sparse.csr_matrix(
             (np.ones(int(valid[b].sum())), (pose[b][valid[b]], point[b][valid[b]])), shape=(m, n)
@@ -487,7 +490,8 @@ def _factorize_schur(
     sparse: SparseSchur | None,
 ) -> Factorization:
     """Schur factorization for the block linearization (module doc)."""
-    B, E = data.pose_index.shape
+    edges = coupling_edges(data)
+    B, E = edges.pose_index.shape
     m, n = data.num_poses, data.num_points
     U = damp(lin.pose_blocks, lam, damping)
     V = damp(lin.point_blocks, lam, damping)
@@ -500,7 +504,7 @@ def _factorize_schur(
 
     W = lin.coupling.reshape(B * E, 6, 3)
     batch = torch.arange(B, device=W.device)[:, None]
-    V_inv_e = V_inv.reshape(B * n, 3, 3)[(batch * n + data.point_index).reshape(-1)]
+    V_inv_e = V_inv.reshape(B * n, 3, 3)[(batch * n + edges.point_index).reshape(-1)]
     Y = W @ V_inv_e  # (B·E, 6, 3)
 
     if sparse is None:
@@ -531,19 +535,19 @@ def _factorize_schur(
 
     def solve(pose_gradient: Tensor, point_gradient: Tensor) -> tuple[Tensor, Tensor]:
         # Right-hand side: −g_p + Σ_e Y_e g_l(j(e)).
-        gl_e = point_gradient.reshape(B * n, 3)[(batch * n + data.point_index).reshape(-1)]
+        gl_e = point_gradient.reshape(B * n, 3)[(batch * n + edges.point_index).reshape(-1)]
         Yg = (Y @ gl_e[..., None])[..., 0].reshape(B, E, 6)
         rhs = (
             (-pose_gradient)
             .reshape(B * m, 6)
-            .index_add(0, (batch * m + data.pose_index).reshape(-1), Yg.reshape(-1, 6))
+            .index_add(0, (batch * m + edges.pose_index).reshape(-1), Yg.reshape(-1, 6))
         )
         dp = reduced.solve(rhs.reshape(B, 6 * m)).reshape(B, m, 6)
         # Back-substitution: δl_j = −V_j⁻¹ (g_lj + Σ_e W_eᵀ δp_i(e)).
-        dp_e = per_observation(dp, data.flat_pose_index)
+        dp_e = per_observation(dp, batch * m + edges.pose_index)
         Wt_dp = (lin.coupling.transpose(-1, -2) @ dp_e[..., None])[..., 0]  # (B, E, 3)
         acc = point_gradient.reshape(B * n, 3).index_add(
-            0, (batch * n + data.point_index).reshape(-1), Wt_dp.reshape(-1, 3)
+            0, (batch * n + edges.point_index).reshape(-1), Wt_dp.reshape(-1, 3)
         )
         return dp, -(V_inv @ acc.reshape(B, n, 3)[..., None])[..., 0]
 
@@ -577,8 +581,9 @@ def _factorize_dense(
     H = lin.coupling.new_zeros(B, N, N)
     H = H.index_put(block_indices(m, 0, 6), U)
     H = H.index_put(block_indices(n, 6 * m, 3), V)
-    rows = 6 * data.pose_index[..., None, None] + torch.arange(6, device=device)[:, None]
-    cols = 6 * m + 3 * data.point_index[..., None, None] + torch.arange(3, device=device)
+    edges = coupling_edges(data)
+    rows = 6 * edges.pose_index[..., None, None] + torch.arange(6, device=device)[:, None]
+    cols = 6 * m + 3 * edges.point_index[..., None, None] + torch.arange(3, device=device)
     rows, cols = torch.broadcast_tensors(rows, cols)  # (B, E, 6, 3)
     bidx = torch.arange(B, device=device)[:, None, None, None].expand_as(rows)
     H = H.index_put((bidx, rows, cols), lin.coupling, accumulate=True)
