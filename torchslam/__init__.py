@@ -32,7 +32,7 @@ from torchslam.solver import (
     solve_differentiable,
     solve_tensors,
 )
-from torchslam.terms import PosePriorTerm, RelativePoseTerm, Term
+from torchslam.terms import PointObservationTerm, PosePriorTerm, RelativePoseTerm, Term
 
 __version__ = "0.1.0"
 
@@ -42,6 +42,7 @@ __all__ = [
     "ImplicitConfig",
     "PointMapData",
     "PointMapProblem",
+    "PointObservationTerm",
     "PosePriorTerm",
     "RelativePoseTerm",
     "SolveResult",
