@@ -1,4 +1,5 @@
-"""Pluggable residual terms on poses: relative-pose (between) terms, pose priors, user terms.
+"""Pluggable residual terms on poses and points: relative poses, priors, point observations,
+user terms.
 
 The objective of a :class:`torchslam.PointMapProblem` is a sum of terms: the ICP-SLAM point
 observations (built in; the Schur complement eliminates their points) plus any number of
@@ -28,12 +29,25 @@ r(T_a·Exp(δ_a)) at δ = 0, vmapped over the instances; a term may also overrid
 :meth:`Term.jacobians` with analytic blocks (the built-in terms do, and the tests check them
 against ``jacrev`` and central differences).
 
+Terms that touch points. Given ``point_index`` (K,) or (B, K), each instance also touches one
+world point X_j (a variable of the problem, like the points of the point observations) and
+is called as ``residual(poses, points, **constants)`` with points (..., 3); ``jacrev`` then
+also differentiates r(…, X_j + δX) at δX = 0, and analytic :meth:`Term.jacobians` return
+(r, J_poses, J_point (..., d, 3)). The solver eliminates these points by the same Schur
+complement as the point observations (each (pose, point) pair of an instance is a coupling
+edge, :func:`torchslam.solver.linearize.coupling_edges`). Such a term may touch no pose at
+all (``pose_index=None``: arity 0, e.g. a prior on a point). A pinhole reprojection term is in
+``examples/bundle_adjustment.py``.
+
 Built-in terms (derivations in their docstrings):
 
 - :class:`RelativePoseTerm`: r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹) with Z_ij ≈ T_i0 T_j0⁻¹, the
   pose of frame j in frame i (it maps frame-j coordinates to frame i: what ICP of scan j onto
   scan i returns, and the odometry T_(i,i+1) of the chain T_0i = T_01 T_12 …).
 - :class:`PosePriorTerm`: r = Log(Z⁻¹ · T) with Z ≈ T.
+- :class:`PointObservationTerm`: r = X_ij − T_i0 X_j, the ICP-SLAM point observation (seed
+  eq. 1.1) that :class:`torchslam.PointMapProblem` keeps in its data for its structured fast
+  path.
 
 Pose graphs of :mod:`torchslam.posegraph` use g2o's body → world vertices T_i^g = T_i0⁻¹ and
 measurements Z_ij^g ≈ (T_i^g)⁻¹ T_j^g = T_i0 T_j0⁻¹: the same Z_ij, so a g2o edge (i, j) is a

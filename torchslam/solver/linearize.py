@@ -6,7 +6,9 @@ from per-observation quantities — never a dense J.
 **Block form** (general: information matrices, the ``jacrev`` Jacobian mode, robust kernels
 with curvature correction). For each observation e = (i, j), the whitened residual r̃ = Lᵀ r
 (Ω = L Lᵀ) and blocks J̃ = Lᵀ [J_r_xi | J_r_point] are robustified with Ceres' corrector
-(:func:`torchslam.losses.triggs_correction`), then
+(:func:`torchslam.losses.triggs_correction`), then (for scalar weights w, r and J are not
+whitened and every product below is multiplied by w: no √w, whose derivative is infinite
+at w = 0)
 
     U_i = Σ_e J̃_ξᵀ J̃_ξ (6×6),  V_j = Σ_e J̃_Xᵀ J̃_X (3×3),  W_e = J̃_ξᵀ J̃_X (6×3),
     g_i = Σ_e J̃_ξᵀ r̃,          g_j = Σ_e J̃_Xᵀ r̃.
@@ -22,13 +24,17 @@ blocks factor as J_ξ = J_X · G_j with J_X = −R_i and G_j = [ −[X_j]× | I 
 so every block is a weighted sum of the 10 monomials (1, x, y, z, x², y², z², xy, xz, yz) of
 X_j. The Schur complement then needs no per-pair products at all (see :mod:`.linear`).
 
-**Pose terms** (:mod:`torchslam.terms`: relative poses, priors, user terms). Instance k of a
-term touches poses i_1 … i_a with whitened, robustified residual r̃_k and blocks J̃_k,a (d × 6);
-it adds J̃_aᵀr̃ to g_(i_a), J̃_aᵀJ̃_a to U_(i_a) (folded into ``pose_blocks`` and
-``pose_gradient`` of either form, so damping and Schur see the whole pose Hessian) and the
+**Terms** (:mod:`torchslam.terms`: relative poses, priors, point observations, user terms).
+Instance k of a term touches poses i_1 … i_a and, for a term with ``point_index``, one point
+j, with whitened, robustified residual r̃_k and blocks J̃_k = [J̃_1 … J̃_a | J̃_X] (d × (6a + 3)),
+formed by the same routine as the point observations' blocks (:func:`instance_blocks`). It
+adds J̃_aᵀr̃ to g_(i_a) and J̃_aᵀJ̃_a to U_(i_a) (folded into ``pose_blocks`` and
+``pose_gradient`` of either form, so damping and Schur see the whole pose Hessian), the
 off-diagonal products J̃_aᵀJ̃_b (a ≠ b) to block (i_a, i_b) of the reduced pose system, kept
-as :class:`TermLinearization` ``pair_blocks``; :mod:`.linear` adds them to S (dense) or to
-its sparse pattern.
+as :class:`TermLinearization` ``pair_blocks`` (:mod:`.linear` adds them to S, dense or
+sparse), and for a point J̃_XᵀJ̃_X to V_j, J̃_Xᵀr̃ to g_j and one coupling block
+W = J̃_aᵀJ̃_X per (pose, point) pair, appended to ``coupling`` in the order of
+:func:`coupling_edges`. A term that touches points needs the block form.
 
 Fixed poses/points and padding contribute nothing; fixed variables get an identity block and
 a zero gradient, so their step is exactly zero.
