@@ -34,7 +34,7 @@ from torchslam.solver import (
     solve_differentiable,
     solve_tensors,
 )
-from torchslam.terms import PosePriorTerm, RelativePoseTerm, Term
+from torchslam.terms import PointObservationTerm, PosePriorTerm, RelativePoseTerm, Term
 
 __version__ = "0.1.0"
 
@@ -45,6 +45,7 @@ __all__ = [
     "IterationInfo",
     "PointMapData",
     "PointMapProblem",
+    "PointObservationTerm",
     "PosePriorTerm",
     "RelativePoseTerm",
     "SolveResult",

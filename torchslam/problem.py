@@ -285,7 +285,7 @@ class PointMapProblem(nn.Module):
         fixed_points = _mask(fn, "fixed_points", fixed_points, (B, n), points.device, False, source)
         losses.check_loss(fn, loss)
         scalar_weights, information = _split_weights(fn, weights, B, E, observations)
-        terms = _bind_terms(fn, terms, B, m, observations)
+        terms = _bind_terms(fn, terms, B, m, observations, n)
 
         _checks.check_pose_matrix(fn, "poses", poses)
         _checks.check_finite(fn, "points", points)
@@ -303,6 +303,7 @@ class PointMapProblem(nn.Module):
                 fixed_points,
                 self.diagnostics,
                 _term_links(terms, B) if terms else None,
+                _point_term_counts(terms, B, m, n),
             )
 
         self.pose_tangent = nn.Parameter(se3.log(poses.detach()).clone())
@@ -586,7 +587,7 @@ def cost_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
     s = data.squared_norms(raw_residuals_from_poses(T, points, data))
     if data.loss is not None:
         s = torch.where(data.valid, data.loss(s)[0], torch.zeros_like(s))
-    return 0.5 * s.sum(-1) + terms_cost(data.terms, T)
+    return 0.5 * s.sum(-1) + terms_cost(data.terms, T, points)
 
 
 def cost(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
@@ -732,6 +733,14 @@ def check_data_values(fn: str, data: PointMapData) -> None:
                 f"{fn}: data.terms[{k}] ({type(term).__name__}) has a pose index outside "
                 f"[0, {data.num_poses})"
             )
+        if term.has_point:
+            point_index = term.point_index
+            bad = term.valid & ((point_index < 0) | (point_index >= data.num_points))
+            if point_index.shape != term.valid.shape or bool(bad.any()):
+                raise ValueError(
+                    f"{fn}: data.terms[{k}] ({type(term).__name__}) has a point index outside "
+                    f"[0, {data.num_points})"
+                )
     mark_checked(data)
 
 
@@ -766,7 +775,9 @@ def _check_observations(
         )
 
 
-def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) -> tuple[Term, ...]:
+def _bind_terms(
+    fn: str, terms: object, B: int, m: int, observations: Tensor, n: int = 0
+) -> tuple[Term, ...]:
     if terms is None:
         return ()
     if isinstance(terms, Term) or not isinstance(terms, (list, tuple)):
@@ -780,7 +791,7 @@ def _bind_terms(fn: str, terms: object, B: int, m: int, observations: Tensor) ->
                 f"{fn}: terms[{k}] must be a torchslam.Term (e.g. RelativePoseTerm), "
                 f"got {type(term).__name__}"
             )
-    return tuple(term.bind(B, m, observations) for term in terms)
+    return tuple(term.bind(B, m, observations, n) for term in terms)
 
 
 def _term_links(terms: tuple[Term, ...], B: int) -> list[tuple]:
@@ -788,12 +799,14 @@ def _term_links(terms: tuple[Term, ...], B: int) -> list[tuple]:
 
     An instance links its poses when its residual has ≥ 6 entries and it is valid with a
     positive weight: a unary one (a prior) anchors its pose, one of arity ≥ 2 joins its poses
-    (a relative pose fixes one pose given the other).
+    (a relative pose fixes one pose given the other). A term that touches a point links its
+    poses only through the point, which is a variable too: it neither anchors nor joins them
+    here, it observes them (:func:`_point_term_counts`) as a point observation does.
     """
     edges = [[] for _ in range(B)]
     anchors = [[] for _ in range(B)]
     for term in terms:
-        if term.num_instances == 0:
+        if term.num_instances == 0 or term.has_point:
             continue
         if term.residual_dim < 6:  # set by Term.bind
             continue
@@ -817,6 +830,32 @@ def _term_links(terms: tuple[Term, ...], B: int) -> list[tuple]:
         )
         for b in range(B)
     ]
+
+
+def _point_term_counts(terms: tuple[Term, ...], B: int, m: int, n: int) -> tuple | None:
+    """What the terms that touch points add to the observation counts, or None without such
+    terms: (instances per pose (B, m), residual entries per pose (B, m), residual entries per
+    point (B, n)), long, over the valid instances. An instance counts for each of its poses,
+    as a point observation (3 entries) does for its pose."""
+    point_terms = [t for t in terms if t.has_point and t.num_instances > 0]
+    if not point_terms:
+        return None
+    device = point_terms[0].valid.device
+    links = torch.zeros(B * m, dtype=torch.long, device=device)
+    pose_entries = torch.zeros(B * m, dtype=torch.long, device=device)
+    point_entries = torch.zeros(B * n, dtype=torch.long, device=device)
+    batch = torch.arange(B, device=device)[:, None]
+    for term in point_terms:
+        ones = term.valid.long()
+        d = term.residual_dim  # set by Term.bind
+        for a in range(term.arity):
+            slots = (batch * m + term.pose_index[..., a]).reshape(-1)
+            links.index_add_(0, slots, ones.reshape(-1))
+            pose_entries.index_add_(0, slots, d * ones.reshape(-1))
+        point_entries.index_add_(
+            0, (batch * n + term.point_index).reshape(-1), d * ones.reshape(-1)
+        )
+    return links.reshape(B, m), pose_entries.reshape(B, m), point_entries.reshape(B, n)
 
 
 def _unanchored_gauges(
@@ -865,7 +904,15 @@ def _hold_ill_posed_fixed(
     fixed_points: Tensor,
     diagnostics: list[str],
     term_links: list[tuple] | None = None,
+    point_terms: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
+    """Hold fixed what the observations cannot determine (module doc), with diagnostics.
+
+    A pose needs ≥ 3 observed points and ≥ 6 residual entries on them (3 point observations,
+    or 3 reprojections of 2 entries each); a point needs ≥ 3 residual entries (one point
+    observation, or two reprojections). ``point_terms`` (:func:`_point_term_counts`) adds the
+    terms that touch points to the point observations' counts.
+    """
     B, m = fixed_poses.shape
     n = fixed_points.shape[1]
     ones = valid.to(torch.long)
@@ -878,7 +925,13 @@ def _hold_ill_posed_fixed(
     point_counts.index_add_(
         0, (batch_offset * n + point_index.clamp(0, n - 1)).reshape(-1), ones.reshape(-1)
     )
-    weak_poses = (pose_counts.reshape(B, m) < 3) & ~fixed_poses
+    pose_counts = pose_counts.reshape(B, m)
+    pose_entries, point_entries = 3 * pose_counts, 3 * point_counts.reshape(B, n)
+    if point_terms is not None:
+        pose_counts = pose_counts + point_terms[0]
+        pose_entries = pose_entries + point_terms[1]
+        point_entries = point_entries + point_terms[2]
+    weak_poses = ((pose_counts < 3) | (pose_entries < 6)) & ~fixed_poses
     gauges = []
     if term_links is not None:
         weak_poses, gauges = _unanchored_gauges(term_links, weak_poses, fixed_poses, m)
@@ -889,17 +942,20 @@ def _hold_ill_posed_fixed(
                 f"not to a fixed or well-observed pose (a free gauge); pose {i} held fixed at "
                 "its initial value"
             )
-    unseen_points = (point_counts.reshape(B, n) == 0) & ~fixed_points
+    unseen_points = (point_entries < 3) & ~fixed_points
     held = {(b, i) for b, i, _ in gauges}
     for b, i in weak_poses.nonzero().tolist():
         if (b, i) in held:
             continue
-        diagnostics.append(
-            f"problem {b}: pose {i} has {int(pose_counts[b * m + i])} observation(s) (< 3); "
-            "held fixed at its initial value"
-        )
+        count = int(pose_counts[b, i])
+        what = f"{count} observation(s) (< 3)"
+        if count >= 3:
+            what = f"{int(pose_entries[b, i])} residual entries on points (< 6)"
+        diagnostics.append(f"problem {b}: pose {i} has {what}; held fixed at its initial value")
     for b, j in unseen_points.nonzero().tolist():
-        diagnostics.append(f"problem {b}: point {j} has no observation; held fixed")
+        entries = int(point_entries[b, j])
+        what = "no observation" if entries == 0 else f"{entries} residual entries (< 3)"
+        diagnostics.append(f"problem {b}: point {j} has {what}; held fixed")
     if diagnostics:
         shown = "; ".join(diagnostics[:5]) + (
             f"; … ({len(diagnostics)} in all)" if len(diagnostics) > 5 else ""

@@ -1,4 +1,5 @@
-"""Pluggable residual terms on poses: relative-pose (between) terms, pose priors, user terms.
+"""Pluggable residual terms on poses and points: relative poses, priors, point observations,
+user terms.
 
 The objective of a :class:`torchslam.PointMapProblem` is a sum of terms: the ICP-SLAM point
 observations (built in; the Schur complement eliminates their points) plus any number of
@@ -28,12 +29,25 @@ r(T_a·Exp(δ_a)) at δ = 0, vmapped over the instances; a term may also overrid
 :meth:`Term.jacobians` with analytic blocks (the built-in terms do, and the tests check them
 against ``jacrev`` and central differences).
 
+Terms that touch points. Given ``point_index`` (K,) or (B, K), each instance also touches one
+world point X_j (a variable of the problem, like the points of the point observations) and
+is called as ``residual(poses, points, **constants)`` with points (..., 3); ``jacrev`` then
+also differentiates r(…, X_j + δX) at δX = 0, and analytic :meth:`Term.jacobians` return
+(r, J_poses, J_point (..., d, 3)). The solver eliminates these points by the same Schur
+complement as the point observations (each (pose, point) pair of an instance is a coupling
+edge, :func:`torchslam.solver.linearize.coupling_edges`). Such a term may touch no pose at
+all (``pose_index=None``: arity 0, e.g. a prior on a point). A pinhole reprojection term is in
+``examples/bundle_adjustment.py``.
+
 Built-in terms (derivations in their docstrings):
 
 - :class:`RelativePoseTerm`: r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹) with Z_ij ≈ T_i0 T_j0⁻¹, the
   pose of frame j in frame i (it maps frame-j coordinates to frame i: what ICP of scan j onto
   scan i returns, and the odometry T_(i,i+1) of the chain T_0i = T_01 T_12 …).
 - :class:`PosePriorTerm`: r = Log(Z⁻¹ · T) with Z ≈ T.
+- :class:`PointObservationTerm`: r = X_ij − T_i0 X_j, the ICP-SLAM point observation (seed
+  eq. 1.1) that :class:`torchslam.PointMapProblem` keeps in its data for its structured fast
+  path.
 
 Pose graphs of :mod:`torchslam.posegraph` use g2o's body → world vertices T_i^g = T_i0⁻¹ and
 measurements Z_ij^g ≈ (T_i^g)⁻¹ T_j^g = T_i0 T_j0⁻¹: the same Z_ij, so a g2o edge (i, j) is a
@@ -49,14 +63,18 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks, losses
-from torchslam.lie import se3
+from torchslam.lie import se3, so3
 
 __all__ = [
+    "PointObservationTerm",
     "PosePriorTerm",
     "RelativePoseTerm",
     "Term",
+    "point_observation_blocks",
+    "term_blocks",
     "term_cost",
     "term_jacobians",
+    "term_points",
     "term_poses",
     "term_squared_norms",
     "term_whitening",
@@ -88,12 +106,16 @@ class Term:
         pose_index: Tensor,
         constants: Mapping[str, Tensor] | None = None,
         *,
+        point_index: Tensor | None = None,
         weight: Tensor | None = None,
         information: Tensor | None = None,
         loss: object | None = None,
         valid: Tensor | None = None,
     ) -> None:
         fn = type(self).__name__
+        if pose_index is None and isinstance(point_index, Tensor):
+            # A term on points only (e.g. a point prior): arity 0.
+            pose_index = point_index.new_zeros(*point_index.shape, 0)
         if not isinstance(pose_index, Tensor):
             raise TypeError(
                 f"{fn}: argument 'pose_index' must be a torch.Tensor, "
@@ -107,15 +129,39 @@ class Term:
             raise TypeError(
                 f"{fn}: argument 'pose_index' must be an integer tensor, got {pose_index.dtype}"
             )
-        if pose_index.dim() not in (2, 3) or pose_index.shape[-1] < 1:
+        least = 0 if point_index is not None else 1
+        if pose_index.dim() not in (2, 3) or pose_index.shape[-1] < least:
             raise ValueError(
                 f"{fn}: argument 'pose_index' must have shape (K, a) or (B, K, a) with a ≥ 1 "
-                f"poses per instance, got {tuple(pose_index.shape)}"
+                f"poses per instance (a ≥ 0 with 'point_index'), got {tuple(pose_index.shape)}"
             )
         if weight is not None and information is not None:
             raise ValueError(f"{fn}: give 'weight' or 'information', not both")
         self.pose_index = pose_index.long()
         lead = tuple(pose_index.shape[:-1])
+        # The point each instance touches, long (K,) or (B, K), or None for a pose term.
+        self.point_index = None
+        if point_index is not None:
+            if not isinstance(point_index, Tensor):
+                raise TypeError(
+                    f"{fn}: argument 'point_index' must be a torch.Tensor or None, "
+                    f"got {_checks.describe(point_index)}"
+                )
+            if (
+                point_index.dtype.is_floating_point
+                or point_index.dtype.is_complex
+                or point_index.dtype == torch.bool
+            ):
+                raise TypeError(
+                    f"{fn}: argument 'point_index' must be an integer tensor, "
+                    f"got {point_index.dtype}"
+                )
+            if tuple(point_index.shape) != lead:
+                raise ValueError(
+                    f"{fn}: argument 'point_index' must have shape {lead} (those of "
+                    f"'pose_index' without the arity), got {tuple(point_index.shape)}"
+                )
+            self.point_index = point_index.to(pose_index.device, torch.long)
         if valid is None:
             valid = torch.ones(lead, dtype=torch.bool, device=pose_index.device)
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
@@ -136,11 +182,17 @@ class Term:
             )
         self.constants = dict(constants or {})
         check_values = _checks.value_checks_active()
+        reserved = ("poses", "points") if self.point_index is not None else ("poses",)
         for name, value in self.constants.items():
             if not isinstance(name, str) or not name.isidentifier():
                 raise TypeError(
                     f"{fn}: constant names must be identifiers (they are passed to residual() "
                     f"by name), got {name!r}"
+                )
+            if name in reserved:
+                raise ValueError(
+                    f"{fn}: constant name {name!r} is taken by the argument of residual() "
+                    f"of that name; rename the constant"
                 )
             _checks.check_tensor(fn, name, value, floating=False)
             if tuple(value.shape[: len(lead)]) != lead:
@@ -204,17 +256,23 @@ class Term:
     # ----------------------------------------------------------------------------------------
     # What a subclass writes
 
-    def residual(self, poses: Tensor, **constants: Tensor) -> Tensor:
+    def residual(self, poses: Tensor, *args: Tensor, **constants: Tensor) -> Tensor:
         """Residuals of the instances: poses (..., a, 4, 4) and constants (..., …) → (..., d).
 
         ``poses[..., a, :, :]`` is the a-th pose the instance touches (T_i0, world → frame i).
-        Must be written batched over the leading dims (it is also called under ``vmap``).
+        A term with ``point_index`` is called as ``residual(poses, points, **constants)`` with
+        its world points X_j (..., 3) as the second argument. Must be written batched over the
+        leading dims (it is also called under ``vmap``).
         """
         raise NotImplementedError(f"{type(self).__name__} must implement residual()")
 
-    def jacobians(self, poses: Tensor, **constants: Tensor) -> tuple[Tensor, Tensor] | None:
-        """Optional analytic blocks: (r (..., d), J (..., d, a, 6)), J[..., :, a, :] = ∂r/∂δ_a
-        for T_a ← T_a·Exp(δ_a), columns (ω, v). The default (None) means ``jacrev``."""
+    def jacobians(self, poses: Tensor, *args: Tensor, **constants: Tensor) -> tuple | None:
+        """Optional analytic blocks at the arguments of :meth:`residual`.
+
+        A pose term returns (r (..., d), J (..., d, a, 6)), J[..., :, a, :] = ∂r/∂δ_a for
+        T_a ← T_a·Exp(δ_a), columns (ω, v); a term with ``point_index`` returns
+        (r, J_poses (..., d, a, 6), J_point (..., d, 3)), J_point = ∂r/∂X for X ← X + δX.
+        The default (None) means ``jacrev``."""
         return None
 
     # ----------------------------------------------------------------------------------------
@@ -224,6 +282,11 @@ class Term:
     def arity(self) -> int:
         """Poses per instance a."""
         return self.pose_index.shape[-1]
+
+    @property
+    def has_point(self) -> bool:
+        """Each instance also touches one world point (``point_index`` was given)."""
+        return self.point_index is not None
 
     @property
     def num_instances(self) -> int:
@@ -265,6 +328,7 @@ class Term:
         weight, information, the loss's tensor attributes): moves or casts the term."""
         new = copy.copy(self)
         new.pose_index = fn(self.pose_index)
+        new.point_index = None if self.point_index is None else fn(self.point_index)
         new.valid = fn(self.valid)
         new.constants = {k: fn(v) for k, v in self.constants.items()}
         new.weight = None if self.weight is None else fn(self.weight)
@@ -273,14 +337,24 @@ class Term:
         new.loss = losses.with_tensor_attributes(self.loss, moved)
         return new
 
-    def bind(self, batch_size: int, num_poses: int, like: Tensor) -> Term:
+    def bind(
+        self, batch_size: int, num_poses: int, like: Tensor, num_points: int | None = None
+    ) -> Term:
         """A copy with every tensor expanded to batch ``batch_size``, checked against a problem
-        of ``num_poses`` poses whose floating tensors are like ``like`` (dtype, device)."""
+        of ``num_poses`` poses (and ``num_points`` points, needed by a term with
+        ``point_index``) whose floating tensors are like ``like`` (dtype, device)."""
         fn = type(self).__name__
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 0:
             raise ValueError(f"{fn}.bind: 'batch_size' must be an int ≥ 0, got {batch_size!r}")
         if isinstance(num_poses, bool) or not isinstance(num_poses, int) or num_poses < 1:
             raise ValueError(f"{fn}.bind: 'num_poses' must be an int ≥ 1, got {num_poses!r}")
+        if self.has_point and (
+            isinstance(num_points, bool) or not isinstance(num_points, int) or num_points < 0
+        ):
+            raise ValueError(
+                f"{fn}.bind: a term with 'point_index' needs 'num_points', an int ≥ 0, "
+                f"got {num_points!r}"
+            )
         _checks.check_tensor(f"{fn}.bind", "like", like)
         B = batch_size
         batched = self.pose_index.dim() == 3
@@ -318,20 +392,34 @@ class Term:
         first = int(flat_valid.to(torch.uint8).argmax()) if flat_valid.numel() > 0 else 0
         new._fill_instance = first if flat_valid.numel() > 0 and bool(flat_valid[first]) else -1
         new.pose_index = torch.where(new.valid[..., None], new.pose_index, 0)
+        if self.has_point:
+            new.point_index = expand(self.point_index.to(like.device))
+            bad = new.valid & ((new.point_index < 0) | (new.point_index >= num_points))
+            if bool(bad.any()):
+                b, k = (int(i) for i in bad.nonzero()[0])
+                raise ValueError(
+                    f"{fn}: 'point_index' out of range [0, {num_points}): problem {b}, "
+                    f"instance {k} has {int(new.point_index[b, k])}"
+                )
+            new.point_index = torch.where(new.valid, new.point_index, 0)
         new.constants = {k: expand(v) for k, v in self.constants.items()}
         new.weight = None if self.weight is None else expand(self.weight)
         new.information = None if self.information is None else expand(self.information)
         if new.num_instances > 0 and B > 0:
-            # One instance, batch dims (1, 1): poses (1, 1, a, 4, 4), constants (1, 1, …).
-            r = new.residual(
+            # One instance, batch dims (1, 1): poses (1, 1, a, 4, 4), points (1, 1, 3),
+            # constants (1, 1, …); only the shape and dtype of the value are used.
+            r = _call_residual(
+                new,
                 se3.identity(1, 1, new.arity, dtype=like.dtype, device=like.device),
-                **{k: v[:1, :1] for k, v in masked_constants(new).items()},
+                like.new_zeros(1, 1, 3),
+                {k: v[:1, :1] for k, v in masked_constants(new).items()},
             )
             if not isinstance(r, Tensor) or r.dim() != 3 or tuple(r.shape[:2]) != (1, 1):
                 got = tuple(r.shape) if isinstance(r, Tensor) else _checks.describe(r)
+                points = ", points (1, 1, 3)" if new.has_point else ""
                 raise ValueError(
                     f"{fn}.residual must return shape (..., d) for poses (..., a, 4, 4); for "
-                    f"one instance (1, 1, a, 4, 4) it returned {got}"
+                    f"one instance (1, 1, a, 4, 4){points} it returned {got}"
                 )
             if r.dtype != like.dtype:
                 raise TypeError(
@@ -350,8 +438,9 @@ class Term:
         weighting = "information" if self.information is not None else "weight"
         if self.information is None and self.weight is None:
             weighting = "unit"
+        point = ", point" if self.has_point else ""
         return (
-            f"{type(self).__name__}(instances={self.num_instances}, arity={self.arity}, "
+            f"{type(self).__name__}(instances={self.num_instances}, arity={self.arity}{point}, "
             f"weighting={weighting}, loss={self.loss!r})"
         )
 
@@ -404,47 +493,109 @@ def term_poses(term: Term, poses: Tensor) -> Tensor:
     return poses.reshape(B * m, 4, 4)[flat.reshape(-1)].reshape(*flat.shape, 4, 4)
 
 
-def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[Tensor, Tensor]:
-    """Residuals (B, K, d) and blocks (B, K, d, a, 6) of a bound term at its poses (B, K, a, 4, 4).
+def term_points(term: Term, points: Tensor) -> Tensor:
+    """The point each instance touches: points (B, n, 3) → (B, K, 3) (bound point term)."""
+    B, n = points.shape[:2]
+    flat = torch.arange(B, device=points.device)[:, None] * n + term.point_index
+    return points.reshape(B * n, 3)[flat.reshape(-1)].reshape(*flat.shape, 3)
 
-    ``mode="analytic"`` uses :meth:`Term.jacobians` when the term has them, else ``jacrev``;
-    ``mode="jacrev"`` always differentiates :meth:`Term.residual` with ``torch.func.jacrev``.
+
+def _call_residual(
+    term: Term, poses: Tensor, points: Tensor | None, constants: Mapping[str, Tensor]
+) -> Tensor:
+    """``term.residual`` with the points as second argument for a point term."""
+    if term.has_point:
+        return term.residual(poses, points, **constants)
+    return term.residual(poses, **constants)
+
+
+def term_blocks(
+    term: Term, poses: Tensor, points: Tensor | None = None, mode: str = "analytic"
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Residuals and Jacobian blocks of a bound term at its poses and points.
+
+    Args:
+        term: a bound term (:meth:`Term.bind`).
+        poses: the poses each instance touches, (B, K, a, 4, 4) (:func:`term_poses`).
+        points: the point each instance touches, (B, K, 3) (:func:`term_points`); only for a
+            term with ``point_index``.
+        mode: ``"analytic"`` uses :meth:`Term.jacobians` when the term has them, else
+            ``jacrev``; ``"jacrev"`` always differentiates :meth:`Term.residual` with
+            ``torch.func.jacrev`` w.r.t. the right perturbations δ_a of the poses
+            (T_a ← T_a·Exp(δ_a)) and the Euclidean increment of the point, at zero.
+
+    Returns:
+        (r (B, K, d), J_poses (B, K, d, a, 6), J_point (B, K, d, 3) or None for a pose term).
     """
+    name = type(term).__name__
+    if term.has_point and not isinstance(points, Tensor):
+        raise TypeError(f"term_blocks: {name} touches points; give its points (B, K, 3)")
+    if not term.has_point:
+        points = None
     constants = masked_constants(term)
     B, K, a = poses.shape[:3]
     d = getattr(term, "residual_dim", None)
     if mode == "analytic":
-        out = term.jacobians(poses, **constants)
+        if term.has_point:
+            out = term.jacobians(poses, points, **constants)
+        else:
+            out = term.jacobians(poses, **constants)
         if out is not None:
-            name = f"{type(term).__name__}.jacobians"
-            if not (isinstance(out, tuple) and len(out) == 2):
-                raise TypeError(
-                    f"{name} must return None or a tuple (residuals, blocks), got "
-                    f"{_checks.describe(out)}"
+            fn = f"{name}.jacobians"
+            size = 3 if term.has_point else 2
+            if not (isinstance(out, tuple) and len(out) == size):
+                what = (
+                    "(residuals, pose blocks, point blocks)" if size == 3 else "(residuals, blocks)"
                 )
-            r, J = out
-            _check_term_output(name, "residuals", r, (B, K, d), poses)
-            _check_term_output(name, "blocks", J, (B, K, r.shape[-1], a, 6), poses)
-            return r, J
-    r = term.residual(poses, **constants)
-    _check_term_output(f"{type(term).__name__}.residual", "its return value", r, (B, K, d), poses)
+                raise TypeError(
+                    f"{fn} must return None or a tuple {what}, got {_checks.describe(out)}"
+                )
+            r = out[0]
+            _check_term_output(fn, "residuals", r, (B, K, d), poses)
+            _check_term_output(fn, "blocks", out[1], (B, K, r.shape[-1], a, 6), poses)
+            if size == 2:
+                return r, out[1], None
+            _check_term_output(fn, "point blocks", out[2], (B, K, r.shape[-1], 3), poses)
+            return out
+    r = _call_residual(term, poses, points, constants)
+    _check_term_output(f"{name}.residual", "its return value", r, (B, K, d), poses)
+    d = r.shape[-1]
     if B * K == 0:
-        return r, r.new_zeros(B, K, r.shape[-1], a, 6)
+        J_point = r.new_zeros(B, K, d, 3) if term.has_point else None
+        return r, r.new_zeros(B, K, d, a, 6), J_point
 
-    def perturbed(delta: Tensor, T: Tensor, constants: dict[str, Tensor]) -> Tensor:
-        return term.residual(T @ se3._exp(delta), **constants)
+    def perturbed(delta: Tensor, step: Tensor, T: Tensor, X: Tensor, constants) -> Tensor:
+        return _call_residual(term, T @ se3._exp(delta), X + step, constants)
 
     flat_constants = {k: v.reshape(B * K, *v.shape[2:]) for k, v in constants.items()}
-    J = torch.func.vmap(torch.func.jacrev(perturbed))(
-        poses.new_zeros(B * K, a, 6), poses.reshape(B * K, a, 4, 4), flat_constants
+    X = points.reshape(B * K, 3) if term.has_point else poses.new_zeros(B * K, 3)
+    J, J_point = torch.func.vmap(torch.func.jacrev(perturbed, argnums=(0, 1)))(
+        poses.new_zeros(B * K, a, 6),
+        poses.new_zeros(B * K, 3),
+        poses.reshape(B * K, a, 4, 4),
+        X,
+        flat_constants,
     )
     J = J.reshape(B, K, *J.shape[1:])
-    if tuple(J.shape) != (B, K, r.shape[-1], a, 6):
+    if tuple(J.shape) != (B, K, d, a, 6):
         raise ValueError(
-            f"{type(term).__name__}.residual: for one instance (poses (a, 4, 4) = "
-            f"{(a, 4, 4)}, no batch dims) it must return shape (d,) = ({r.shape[-1]},), got "
-            f"{tuple(J.shape[2:-2])}; compute it batched over all leading dims (use '...')"
+            f"{name}.residual: for one instance (poses (a, 4, 4) = {(a, 4, 4)}, no batch dims) "
+            f"it must return shape (d,) = ({d},), got {tuple(J.shape[2:-2])}; compute it "
+            "batched over all leading dims (use '...')"
         )
+    J_point = J_point.reshape(B, K, d, 3) if term.has_point else None
+    return r, J, J_point
+
+
+def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[Tensor, Tensor]:
+    """Residuals (B, K, d) and blocks (B, K, d, a, 6) of a bound pose term at its poses
+    (B, K, a, 4, 4): :func:`term_blocks` without a point."""
+    if term.has_point:
+        raise ValueError(
+            f"term_jacobians: {type(term).__name__} touches points; use term_blocks(term, "
+            "poses, points, mode)"
+        )
+    r, J, _ = term_blocks(term, poses, None, mode)
     return r, J
 
 
@@ -599,6 +750,90 @@ class PosePriorTerm(Term):
         return r, se3._jl_inv(-r)[..., None, :]
 
 
+def point_observation_blocks(
+    T: Tensor, points: Tensor, observations: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The ICP-SLAM point observation r = X_ij − T_i0 X_j (seed eq. 1.1) and its blocks.
+
+    With T ← T·Exp(δ), T Exp(δ) X ≈ T (X + ω × X + v), so ∂r/∂δ = [R [X]× | −R] and
+    ∂r/∂X = −R.
+
+    Args:
+        T: observing poses T_i0, (..., 4, 4); points: world points X_j, (..., 3);
+        observations: X_ij in frame i, (..., 3).
+
+    Returns:
+        (r (..., 3), J_r_xi (..., 3, 6), J_r_point (..., 3, 3)).
+    """
+    R = T[..., :3, :3]
+    r = observations - ((R @ points[..., None])[..., 0] + T[..., :3, 3])
+    J_r_point = -R
+    return r, torch.cat((R @ so3._hat(points), J_r_point), dim=-1), J_r_point
+
+
+class PointObservationTerm(Term):
+    """Point observations r_k = X_k − T_i X_j (seed eq. 1.1) as a term: the residual of the
+    problem's own observations (:class:`torchslam.PointMapProblem`, which keeps them in its
+    data for the structured fast path), here for one more set of observations with their own
+    weights or robust kernel. Blocks: :func:`point_observation_blocks`.
+
+    Args:
+        pose_index: observing pose i of each observation, integer (K,) or (B, K).
+        point_index: observed world point j, integer (K,) or (B, K).
+        observations: X_k, the point in frame i, (K, 3) or (B, K, 3).
+        information: Ω (…, K, 3, 3); or ``weight`` (…, K); default 1.
+        loss, valid: as :class:`Term`.
+    """
+
+    def __init__(
+        self,
+        pose_index: Tensor,
+        point_index: Tensor,
+        observations: Tensor,
+        *,
+        information: Tensor | None = None,
+        weight: Tensor | None = None,
+        loss: object | None = None,
+        valid: Tensor | None = None,
+    ) -> None:
+        fn = "PointObservationTerm"
+        if not isinstance(pose_index, Tensor):
+            raise TypeError(
+                f"{fn}: argument 'pose_index' must be a torch.Tensor, "
+                f"got {type(pose_index).__name__}"
+            )
+        if pose_index.dim() not in (1, 2):
+            raise ValueError(
+                f"{fn}: argument 'pose_index' must have shape (K,) or (B, K), "
+                f"got {tuple(pose_index.shape)}"
+            )
+        lead = tuple(pose_index.shape)
+        _checks.check_tensor(fn, "observations", observations, (3,))
+        if tuple(observations.shape[:-1]) != lead:
+            raise ValueError(
+                f"{fn}: argument 'observations' must have shape {lead} + (3,) to match "
+                f"'pose_index', got {tuple(observations.shape)}"
+            )
+        super().__init__(
+            pose_index[..., None],
+            {"observations": observations},
+            point_index=point_index,
+            weight=weight,
+            information=information,
+            loss=loss,
+            valid=valid,
+        )
+
+    def residual(self, poses: Tensor, points: Tensor, observations: Tensor) -> Tensor:
+        return point_observation_blocks(poses[..., 0, :, :], points, observations)[0]
+
+    def jacobians(
+        self, poses: Tensor, points: Tensor, observations: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        r, J_xi, J_point = point_observation_blocks(poses[..., 0, :, :], points, observations)
+        return r, J_xi[..., None, :], J_point
+
+
 def term_whitening(term: Term) -> Tensor | None:
     """U with UᵀU = Ω per instance (B, K, d, d), √w (B, K), or None for unit weights."""
     weight, information = masked_weighting(term)
@@ -622,18 +857,24 @@ def term_squared_norms(term: Term, r: Tensor) -> Tensor:
     return torch.where(term.valid, s, torch.zeros_like(s))
 
 
-def term_cost(term: Term, poses: Tensor) -> Tensor:
-    """½ Σ_k ρ(s_k) of a bound term at all poses (B, m, 4, 4) → (B,). Differentiable."""
-    r = term.residual(term_poses(term, poses), **masked_constants(term))
+def term_cost(term: Term, poses: Tensor, points: Tensor | None = None) -> Tensor:
+    """½ Σ_k ρ(s_k) of a bound term at all poses (B, m, 4, 4) and points (B, n, 3, needed by
+    a term with ``point_index``) → (B,). Differentiable."""
+    if term.has_point and not isinstance(points, Tensor):
+        raise TypeError(
+            f"term_cost: {type(term).__name__} touches points; give the points (B, n, 3)"
+        )
+    X = term_points(term, points) if term.has_point else None
+    r = _call_residual(term, term_poses(term, poses), X, masked_constants(term))
     s = term_squared_norms(term, r)
     if term.loss is not None:
         s = torch.where(term.valid, term.loss(s)[0], torch.zeros_like(s))
     return 0.5 * s.sum(-1)
 
 
-def terms_cost(terms: tuple[Term, ...], poses: Tensor) -> Tensor:
+def terms_cost(terms: tuple[Term, ...], poses: Tensor, points: Tensor | None = None) -> Tensor:
     """Σ over bound terms of :func:`term_cost`, (B,) (zeros without terms)."""
     total = poses.new_zeros(poses.shape[0])
     for term in terms:
-        total = total + term_cost(term, poses)
+        total = total + term_cost(term, poses, points)
     return total

@@ -6,7 +6,9 @@ from per-observation quantities — never a dense J.
 **Block form** (general: information matrices, the ``jacrev`` Jacobian mode, robust kernels
 with curvature correction). For each observation e = (i, j), the whitened residual r̃ = Lᵀ r
 (Ω = L Lᵀ) and blocks J̃ = Lᵀ [J_r_xi | J_r_point] are robustified with Ceres' corrector
-(:func:`torchslam.losses.triggs_correction`), then
+(:func:`torchslam.losses.triggs_correction`), then (for scalar weights w, r and J are not
+whitened and every product below is multiplied by w: no √w, whose derivative is infinite
+at w = 0)
 
     U_i = Σ_e J̃_ξᵀ J̃_ξ (6×6),  V_j = Σ_e J̃_Xᵀ J̃_X (3×3),  W_e = J̃_ξᵀ J̃_X (6×3),
     g_i = Σ_e J̃_ξᵀ r̃,          g_j = Σ_e J̃_Xᵀ r̃.
@@ -22,13 +24,17 @@ blocks factor as J_ξ = J_X · G_j with J_X = −R_i and G_j = [ −[X_j]× | I 
 so every block is a weighted sum of the 10 monomials (1, x, y, z, x², y², z², xy, xz, yz) of
 X_j. The Schur complement then needs no per-pair products at all (see :mod:`.linear`).
 
-**Pose terms** (:mod:`torchslam.terms`: relative poses, priors, user terms). Instance k of a
-term touches poses i_1 … i_a with whitened, robustified residual r̃_k and blocks J̃_k,a (d × 6);
-it adds J̃_aᵀr̃ to g_(i_a), J̃_aᵀJ̃_a to U_(i_a) (folded into ``pose_blocks`` and
-``pose_gradient`` of either form, so damping and Schur see the whole pose Hessian) and the
+**Terms** (:mod:`torchslam.terms`: relative poses, priors, point observations, user terms).
+Instance k of a term touches poses i_1 … i_a and, for a term with ``point_index``, one point
+j, with whitened, robustified residual r̃_k and blocks J̃_k = [J̃_1 … J̃_a | J̃_X] (d × (6a + 3)),
+formed by the same routine as the point observations' blocks (:func:`instance_blocks`). It
+adds J̃_aᵀr̃ to g_(i_a) and J̃_aᵀJ̃_a to U_(i_a) (folded into ``pose_blocks`` and
+``pose_gradient`` of either form, so damping and Schur see the whole pose Hessian), the
 off-diagonal products J̃_aᵀJ̃_b (a ≠ b) to block (i_a, i_b) of the reduced pose system, kept
-as :class:`TermLinearization` ``pair_blocks``; :mod:`.linear` adds them to S (dense) or to
-its sparse pattern.
+as :class:`TermLinearization` ``pair_blocks`` (:mod:`.linear` adds them to S, dense or
+sparse), and for a point J̃_XᵀJ̃_X to V_j, J̃_Xᵀr̃ to g_j and one coupling block
+W = J̃_aᵀJ̃_X per (pose, point) pair, appended to ``coupling`` in the order of
+:func:`coupling_edges`. A term that touches points needs the block form.
 
 Fixed poses/points and padding contribute nothing; fixed variables get an identity block and
 a zero gradient, so their step is exactly zero.
@@ -43,13 +49,14 @@ import torch
 from torch import Tensor
 
 from torchslam import losses
-from torchslam.jacobians import analytic_blocks
 from torchslam.lie import se3, so3
 from torchslam.problem import PointMapData, gather_points, jacobian_blocks, per_observation
 from torchslam.terms import (
     Term,
     masked_weighting,
-    term_jacobians,
+    point_observation_blocks,
+    term_blocks,
+    term_points,
     term_poses,
     term_whitening,
     terms_cost,
@@ -62,9 +69,12 @@ __all__ = [
     "TermLinearization",
     "cost_at",
     "coupling_edges",
+    "instance_blocks",
     "linearize",
     "linearize_terms",
+    "model_decrease",
     "monomials",
+    "point_terms",
     "term_pair_keys",
     "whitening_factors",
 ]
@@ -75,7 +85,9 @@ class CouplingEdges:
     """Every pose-point coupling block W_e of the objective (fixed for a solve).
 
     The order is the order of :attr:`BlockLinearization.coupling`: the point observations of
-    ``data`` first. The Schur complement eliminates the points through these edges only.
+    ``data`` first, then, term by term (in ``data.terms`` order), each instance of a term that
+    touches a point, one edge per pose of the instance (instance-major: (k, a) → k·arity + a).
+    The Schur complement eliminates the points through these edges only.
     """
 
     # Pose and point of each edge, long (B, E').
@@ -85,19 +97,38 @@ class CouplingEdges:
     active: Tensor
 
 
+def point_terms(data: PointMapData) -> tuple[Term, ...]:
+    """The terms of ``data`` that touch points (a problem without points has none: padding)."""
+    if data.num_points == 0:
+        return ()
+    return tuple(term for term in data.terms if term.has_point)
+
+
 def coupling_edges(data: PointMapData) -> CouplingEdges:
-    """The :class:`CouplingEdges` of ``data`` (its point observations)."""
+    """The :class:`CouplingEdges` of ``data``: its point observations, then the pose-point
+    pairs of its terms that touch points."""
+    pose, point, valid = [data.pose_index], [data.point_index], [data.valid]
+    B = data.pose_index.shape[0]
+    for term in point_terms(data):
+        K, a = term.pose_index.shape[1:]
+        pose.append(term.pose_index.reshape(B, K * a))
+        point.append(term.point_index[..., None].expand(B, K, a).reshape(B, K * a))
+        valid.append(term.valid[..., None].expand(B, K, a).reshape(B, K * a))
+    if len(pose) > 1:
+        pose, point, valid = (torch.cat(x, dim=1) for x in (pose, point, valid))
+    else:
+        pose, point, valid = pose[0], point[0], valid[0]
     active = (
-        data.valid
-        & ~torch.gather(data.fixed_poses, 1, data.pose_index)
-        & ~torch.gather(data.fixed_points, 1, data.point_index)
+        valid
+        & ~torch.gather(data.fixed_poses, 1, pose)
+        & ~torch.gather(data.fixed_points, 1, point)
     )
-    return CouplingEdges(data.pose_index, data.point_index, active)
+    return CouplingEdges(pose, point, active)
 
 
 @dataclass
 class TermLinearization:
-    """The pose terms' share of the normal equations (B problems, m poses)."""
+    """The terms' share of the normal equations (B problems, m poses, n points)."""
 
     # ½ Σ ρ(s) of all terms, (B,).
     cost: Tensor
@@ -107,11 +138,20 @@ class TermLinearization:
     # J̃_aᵀJ̃_b for a ≠ b of every instance of every term, (B, P, 6, 6), in the order of
     # :func:`term_pair_keys`.
     pair_blocks: Tensor
-    # Robustified blocks J of each term, (B, K_t, d_t, a_t, 6), whitened by U for information
-    # matrices; with scalar weights w they are not whitened (no √w: its derivative is
-    # infinite at w = 0) and ``scales`` holds w, (B, K_t) (ones otherwise): J̃ᵀJ̃ = w JᵀJ.
+    # Robustified blocks J of each term, (B, K_t, d_t, 6·a_t [+ 3]): the a_t pose blocks side
+    # by side, then the point block for a term that touches a point; whitened by U for
+    # information matrices; with scalar weights w they are not whitened (no √w: its
+    # derivative is infinite at w = 0) and ``scales`` holds w, (B, K_t) (ones otherwise):
+    # J̃ᵀJ̃ = w JᵀJ.
     jacobians: tuple[Tensor, ...]
     scales: tuple[Tensor, ...]
+    # Σ J̃_Xᵀr̃ per point, (B, n, 3), and Σ J̃_XᵀJ̃_X per point, (B, n, 3, 3) (zero without
+    # terms that touch points).
+    point_gradient: Tensor | None = None
+    point_diagonal: Tensor | None = None
+    # W = J̃_aᵀJ̃_X of the terms' coupling edges, (B, E' − E, 6, 3), in the order of
+    # :func:`coupling_edges` after the point observations.
+    coupling: Tensor | None = None
 
 
 @dataclass
@@ -127,14 +167,20 @@ class BlockLinearization:
     pose_blocks: Tensor
     # Point blocks V, (B, n, 3, 3).
     point_blocks: Tensor
-    # Whitened, robustified residuals r̃, (B, E, 3).
+    # Robustified residuals r̃ of the point observations, (B, E, 3): whitened for
+    # information matrices, not for scalar weights (then ``scale`` holds w).
     residuals: Tensor
-    # Whitened, robustified Jacobian blocks [J̃_ξ | J̃_X], (B, E, 3, 9).
+    # Robustified Jacobian blocks [J̃_ξ | J̃_X] of the point observations, (B, E, 3, 9),
+    # whitened as ``residuals``.
     jacobian: Tensor
-    # Pose-point blocks W_e, (B, E, 6, 3).
+    # Pose-point blocks W_e of every coupling edge, (B, E', 6, 3), in the order of
+    # :func:`coupling_edges` (the point observations first, then the terms' edges).
     coupling: Tensor
-    # The pose terms (already folded into cost, pose_gradient, pose_blocks), or None.
+    # The terms (already folded into cost, gradients, pose_blocks, point_blocks and
+    # coupling), or None.
     terms: TermLinearization | None = None
+    # Scalar weights w of the point observations, (B, E) (0 on padding), or None.
+    scale: Tensor | None = None
 
 
 @dataclass
@@ -236,18 +282,29 @@ def linearize(
     """Normal-equation blocks at (pose_tangent (B, m, 6), points (B, n, 3)).
 
     The structured form is used when ``structured`` and the problem allows it (scalar weights,
-    analytic Jacobians, no curvature-corrected robust observation); otherwise the block form.
+    analytic Jacobians, no curvature-corrected robust observation, no term that touches a
+    point); otherwise the block form. ``factor`` is :func:`whitening_factors` of ``data``
+    (its information matrices' factors are reused; scalar weights are read from ``data``).
     """
+    structured = structured and not point_terms(data)
     lin = _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structured)
     if not data.terms:
         return lin
-    terms = linearize_terms(se3._exp(pose_tangent), data, jacobian_mode)
+    terms = linearize_terms(se3._exp(pose_tangent), points, data, jacobian_mode)
+    changes = {}
+    if isinstance(lin, BlockLinearization) and terms.coupling.shape[1] > 0:
+        changes = dict(
+            point_gradient=lin.point_gradient + terms.point_gradient,
+            point_blocks=lin.point_blocks + terms.point_diagonal,
+            coupling=torch.cat((lin.coupling, terms.coupling), dim=1),
+        )
     return dataclasses.replace(
         lin,
         cost=lin.cost + terms.cost,
         pose_gradient=lin.pose_gradient + terms.gradient,
         pose_blocks=lin.pose_blocks + terms.diagonal,
         terms=terms,
+        **changes,
     )
 
 
@@ -276,7 +333,7 @@ def _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structu
             return _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data)
 
     if jacobian_mode == "analytic":
-        J_xi, J_X = analytic_blocks(T_e[..., :3, :3], X_e)
+        _, J_xi, J_X = point_observation_blocks(T_e, X_e, data.masked_observations())
     else:
         J_xi, J_X = jacobian_blocks(pose_tangent, points, data, jacobian_mode)
     return _blocks(r, J_xi, J_X, factor, free_pose, free_point, data)
@@ -316,27 +373,20 @@ def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
 
 
 def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
+    """The point observations in the block form: :func:`instance_blocks` with one pose and
+    one point per instance (the observations as a :class:`~torchslam.terms.PointObservationTerm`
+    with the data's whitening and kernel)."""
     B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     J = torch.cat((J_xi * free_pose[..., None, None], J_X * free_point[..., None, None]), -1)
-    valid = data.valid[..., None, None]
-    rw = torch.where(valid, _whiten(factor, r[..., None]), torch.zeros_like(r[..., None]))
-    Jw = torch.where(valid, _whiten(factor, J), torch.zeros_like(J))
-    s = (rw * rw).sum(dim=(-1, -2))
-    if data.loss is None:
-        cost = 0.5 * s.sum(-1)
-    else:
-        rho, rho1, rho2 = data.loss(s)
-        cost = 0.5 * torch.where(data.valid, rho, torch.zeros_like(rho)).sum(-1)
-        residual_scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
-        sqrt_rho1 = torch.sqrt(rho1)[..., None, None]
-        Jw = sqrt_rho1 * (Jw - alpha_over_s[..., None, None] * rw @ (rw.transpose(-1, -2) @ Jw))
-        rw = residual_scale[..., None, None] * rw
-        rw = torch.where(valid, rw, torch.zeros_like(rw))
-        Jw = torch.where(valid, Jw, torch.zeros_like(Jw))
-
-    JtJ = Jw.transpose(-1, -2) @ Jw  # (B, E, 9, 9)
-    Jtr = (Jw.transpose(-1, -2) @ rw)[..., 0]  # (B, E, 9)
+    whitening = None
+    if data.information is not None:
+        whitening = factor if factor is not None and factor.dim() == 4 else None
+        if whitening is None:
+            whitening = whitening_factors(data)
+    cost, rw, Jw, scale, JtJ, Jtr = instance_blocks(
+        r, J, data.valid, whitening, data.masked_weights(), data.loss
+    )
     pose_slot, point_slot = _slots(data)
     U = JtJ.new_zeros(B * m, 6, 6).index_add_(0, pose_slot, JtJ[..., :6, :6].reshape(-1, 6, 6))
     V = JtJ.new_zeros(B * n, 3, 3).index_add_(0, point_slot, JtJ[..., 6:, 6:].reshape(-1, 3, 3))
@@ -352,10 +402,75 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
         point_gradient=gl.reshape(B, n, 3),
         pose_blocks=U,
         point_blocks=V,
-        residuals=rw[..., 0],
+        residuals=rw,
         jacobian=Jw,
         coupling=JtJ[..., :6, 6:],
+        scale=scale,
     )
+
+
+def instance_blocks(
+    r: Tensor,
+    J: Tensor,
+    valid: Tensor,
+    whitening: Tensor | None,
+    weight: Tensor | None,
+    loss: object | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor, Tensor]:
+    """Whiten, robustify and multiply out K instances of one residual: the one routine of the
+    block form, for the point observations and for every term.
+
+    Instance k has residual r_k (d) and Jacobian J_k (d × c) over all the variables it
+    touches (its poses' 6-columns side by side, then its point's 3 columns), with the
+    columns of fixed variables already zero. With UᵀU = Ω_k (``whitening`` U) or a scalar
+    weight w_k, s_k = w_k |U r_k|², and Ceres' corrector (:func:`torchslam.losses.
+    triggs_correction`) of r and J applied to the unscaled r, J: with r̂ = r/|r| in whitened
+    coordinates it needs only α r̂ r̂ᵀ = (α/s)·w·r rᵀ, so no √w appears (its derivative is
+    infinite at w = 0); the products are multiplied by w afterwards.
+
+    Args:
+        r: residuals (B, K, d); J: blocks (B, K, d, c); valid: bool (B, K) (padding is inert
+            whatever it holds).
+        whitening: U (B, K, d, d) with UᵀU = Ω per instance, or None.
+        weight: scalar weights w (B, K) (1 on padding), or None.
+        loss: robust kernel ρ, or None.
+
+    Returns:
+        (cost ½ Σ ρ(s) (B,), r̃ (B, K, d), J̃ (B, K, d, c), w (B, K) with 0 on padding or None,
+        J̃ᵀJ̃·w (B, K, c, c), J̃ᵀr̃·w (B, K, c)); everything zero on padding.
+    """
+    valid_r, valid_J = valid[..., None], valid[..., None, None]
+    # Padding instances: zero residual and blocks before whitening (no NaN into U r, U J).
+    r = torch.where(valid_r, r, 0.0)
+    J = torch.where(valid_J, J, 0.0)
+    if whitening is not None:
+        r = (whitening @ r[..., None])[..., 0]
+        J = whitening @ J
+    if weight is not None:
+        weight = torch.where(valid, weight, torch.zeros_like(weight))
+    s = (r * r).sum(-1)
+    if weight is not None:
+        s = weight * s
+    if loss is None:
+        cost = 0.5 * s.sum(-1)
+    else:
+        rho, rho1, rho2 = loss(s)
+        cost = 0.5 * torch.where(valid, rho, torch.zeros_like(rho)).sum(-1)
+        residual_scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
+        if weight is not None:
+            alpha_over_s = alpha_over_s * weight
+        projector = alpha_over_s[..., None, None] * r[..., :, None]
+        J = torch.sqrt(rho1)[..., None, None] * (J - projector @ (r[..., None, :] @ J))
+        r = residual_scale[..., None] * r
+        r = torch.where(valid_r, r, torch.zeros_like(r))
+        J = torch.where(valid_J, J, torch.zeros_like(J))
+    Jt = J.transpose(-1, -2)
+    JtJ = Jt @ J
+    Jtr = (Jt @ r[..., None])[..., 0]
+    if weight is not None:
+        JtJ = weight[..., None, None] * JtJ
+        Jtr = weight[..., None] * Jtr
+    return cost, r, J, weight, JtJ, Jtr
 
 
 def term_pair_keys(data: PointMapData) -> Tensor:
@@ -374,38 +489,63 @@ def term_pair_keys(data: PointMapData) -> Tensor:
     return torch.cat(keys, dim=1)
 
 
-def linearize_terms(poses: Tensor, data: PointMapData, jacobian_mode: str) -> TermLinearization:
-    """The pose terms' normal-equation blocks at poses T (B, m, 4, 4) (module doc)."""
+def linearize_terms(
+    poses: Tensor, points: Tensor, data: PointMapData, jacobian_mode: str
+) -> TermLinearization:
+    """The terms' normal-equation blocks at poses T (B, m, 4, 4) and points (B, n, 3)
+    (module doc): :func:`instance_blocks` per term, scattered into the pose and point blocks,
+    the pose pairs and the coupling edges."""
     B, m = poses.shape[:2]
+    n = points.shape[1]
     cost = poses.new_zeros(B)
     gradient = poses.new_zeros(B * m, 6)
     diagonal = poses.new_zeros(B * m, 6, 6)
-    pairs, jacobians, scales = [], [], []
-    batch = torch.arange(B, device=poses.device)[:, None, None]
+    point_gradient = poses.new_zeros(B * n, 3)
+    point_diagonal = poses.new_zeros(B * n, 3, 3)
+    pairs, couplings, jacobians, scales = [], [], [], []
+    batch = torch.arange(B, device=poses.device)[:, None]
     for term in data.terms:
-        r, J = term_jacobians(term, term_poses(term, poses), jacobian_mode)
-        slots = batch * m + term.pose_index  # (B, K, a)
+        has_point = term.has_point
+        if has_point and n == 0:
+            continue  # no points: every instance of the term is padding
+        X = term_points(term, points) if has_point else None
+        r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode)
+        K, a = term.pose_index.shape[1:]
+        slots = batch[..., None] * m + term.pose_index  # (B, K, a)
         free = ~data.fixed_poses.reshape(-1)[slots]
-        rw, Jw, scale = _whitened_term(term, r, J * free[:, :, None, :, None])
-        term_cost, rw, Jw = _robustified(term, rw, Jw, scale)
+        J = (J * free[:, :, None, :, None]).flatten(-2)  # (B, K, d, 6a)
+        if has_point:
+            point_slots = batch * n + term.point_index  # (B, K)
+            free_point = ~data.fixed_points.reshape(-1)[point_slots]
+            J = torch.cat((J, J_point * free_point[..., None, None]), -1)
+        whitening = term_whitening(term) if term.information is not None else None
+        weight = masked_weighting(term)[0]
+        term_cost, _, Jw, scale, JtJ, Jtr = instance_blocks(
+            r, J, term.valid, whitening, weight, term.loss
+        )
         cost = cost + term_cost
         jacobians.append(Jw)
-        scales.append(scale)
-        a = term.arity
-        K = r.shape[1]
-        Jt = Jw.transpose(-3, -2)  # (B, K, a, d, 6)
-        g = (Jt.transpose(-1, -2) @ rw[:, :, None, :, None])[..., 0]  # (B, K, a, 6)
-        g = scale[:, :, None, None] * g
-        gradient.index_add_(0, slots.reshape(-1), g.reshape(-1, 6))
-        H = Jt[:, :, :, None].transpose(-1, -2) @ Jt[:, :, None, :]  # (B, K, a, a, 6, 6)
-        H = scale[:, :, None, None, None, None] * H
+        scales.append(term.valid.to(r.dtype) if scale is None else scale)
+        P = 6 * a
+        H = JtJ[..., :P, :P].reshape(B, K, a, 6, a, 6)
         idx = torch.arange(a, device=poses.device)
-        diagonal.index_add_(0, slots.reshape(-1), H[:, :, idx, idx].reshape(-1, 6, 6))
+        # (a, B, K, 6, 6): advanced indices on dims 2 and 4 go first.
+        diagonal.index_add_(
+            0, slots.permute(2, 0, 1).reshape(-1), H[:, :, idx, :, idx].reshape(-1, 6, 6)
+        )
+        gradient.index_add_(0, slots.reshape(-1), Jtr[..., :P].reshape(-1, 6))
         for i in range(a):
             for j in range(a):
                 if i != j:
-                    pairs.append(H[:, :, i, j].reshape(B, K, 6, 6))
+                    pairs.append(H[:, :, i, :, j])
+        if has_point:
+            point_gradient.index_add_(0, point_slots.reshape(-1), Jtr[..., P:].reshape(-1, 3))
+            point_diagonal.index_add_(
+                0, point_slots.reshape(-1), JtJ[..., P:, P:].reshape(-1, 3, 3)
+            )
+            couplings.append(JtJ[..., :P, P:].reshape(B, K * a, 6, 3))
     pair_blocks = torch.cat(pairs, dim=1) if pairs else poses.new_zeros(B, 0, 6, 6)
+    coupling = torch.cat(couplings, dim=1) if couplings else poses.new_zeros(B, 0, 6, 3)
     return TermLinearization(
         cost=cost,
         gradient=gradient.reshape(B, m, 6),
@@ -413,54 +553,9 @@ def linearize_terms(poses: Tensor, data: PointMapData, jacobian_mode: str) -> Te
         pair_blocks=pair_blocks,
         jacobians=tuple(jacobians),
         scales=tuple(scales),
-    )
-
-
-def _whitened_term(term: Term, r: Tensor, J: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(U r, U J, ones) for information matrices, (r, J, w) for scalar weights, (r, J, ones)
-    otherwise (J (B, K, d, a, 6)); zero on padding."""
-    scale = torch.ones_like(r[..., 0])
-    valid = term.valid
-    # Padding instances: zero residual and blocks before whitening (no NaN into U r, U J).
-    r = torch.where(valid[..., None], r, 0.0)
-    J = torch.where(valid[..., None, None, None], J, 0.0)
-    if term.information is not None:
-        U = term_whitening(term)
-        r = (U @ r[..., None])[..., 0]
-        J = (U @ J.flatten(-2)).reshape(J.shape)
-    elif term.weight is not None:
-        scale = masked_weighting(term)[0]
-    return (
-        torch.where(valid[..., None], r, torch.zeros_like(r)),
-        torch.where(valid[..., None, None, None], J, torch.zeros_like(J)),
-        torch.where(valid, scale, torch.zeros_like(scale)),
-    )
-
-
-def _robustified(
-    term: Term, rw: Tensor, Jw: Tensor, scale: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """(cost (B,), r̃, J̃): ½ Σ ρ(s), s = w |U r|², and Ceres' corrector of r and J.
-
-    The corrector is applied to the unscaled r, J: with r̂ = r/|r| it needs only
-    α r̂ r̂ᵀ = (α/s)·w·r rᵀ, so no √w appears; the products are multiplied by w afterwards.
-    """
-    s = scale * (rw * rw).sum(-1)
-    if term.loss is None:
-        return 0.5 * s.sum(-1), rw, Jw
-    rho, rho1, rho2 = term.loss(s)
-    cost = 0.5 * torch.where(term.valid, rho, torch.zeros_like(rho)).sum(-1)
-    residual_scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
-    shape = Jw.shape
-    Jf = Jw.flatten(-2)  # (B, K, d, a·6)
-    projector = (alpha_over_s * scale)[..., None, None] * rw[..., :, None]
-    Jf = torch.sqrt(rho1)[..., None, None] * (Jf - projector * (rw[..., None, :] @ Jf))
-    rw = residual_scale[..., None] * rw
-    valid = term.valid
-    return (
-        cost,
-        torch.where(valid[..., None], rw, torch.zeros_like(rw)),
-        torch.where(valid[..., None, None], Jf, torch.zeros_like(Jf)).reshape(shape),
+        point_gradient=point_gradient.reshape(B, n, 3),
+        point_diagonal=point_diagonal.reshape(B, n, 3, 3),
+        coupling=coupling,
     )
 
 
@@ -474,7 +569,7 @@ def cost_at(
     if data.loss is not None:
         s = data.loss(s)[0]
     points_cost = 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
-    return points_cost + terms_cost(data.terms, se3._exp(pose_tangent))
+    return points_cost + terms_cost(data.terms, se3._exp(pose_tangent), points)
 
 
 def model_decrease(
@@ -503,13 +598,20 @@ def model_decrease(
         quad = (lin.weight * (u * u).sum(-1)).sum(-1)
     else:
         Jd = (lin.jacobian @ torch.cat((dp_e, dl_e), -1)[..., None])[..., 0]
-        quad = (Jd * Jd).sum((-1, -2))
+        squares = (Jd * Jd).sum(-1)
+        quad = (squares if lin.scale is None else lin.scale * squares).sum(-1)
     if lin.terms is not None:
         B, m = dp.shape[:2]
-        batch = torch.arange(B, device=dp.device)[:, None, None]
-        for term, J, scale in zip(data.terms, lin.terms.jacobians, lin.terms.scales, strict=True):
+        n = dl.shape[1]
+        batch = torch.arange(B, device=dp.device)[:, None]
+        terms = [t for t in data.terms if not (t.has_point and n == 0)]
+        for term, J, scale in zip(terms, lin.terms.jacobians, lin.terms.scales, strict=True):
             K, a = term.pose_index.shape[1:]
-            d_term = dp.reshape(B * m, 6)[(batch * m + term.pose_index).reshape(-1)]
-            Jd = (J.flatten(-2) @ d_term.reshape(B, K, a * 6, 1))[..., 0]
+            step = dp.reshape(B * m, 6)[(batch[..., None] * m + term.pose_index).reshape(-1)]
+            step = step.reshape(B, K, 6 * a)
+            if term.has_point:
+                dl_k = dl.reshape(B * n, 3)[(batch * n + term.point_index).reshape(-1)]
+                step = torch.cat((step, dl_k.reshape(B, K, 3)), -1)
+            Jd = (J @ step[..., None])[..., 0]
             quad = quad + (scale * (Jd * Jd).sum(-1)).sum(-1)
     return -(g_dot + 0.5 * quad)
