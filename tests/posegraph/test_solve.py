@@ -128,7 +128,19 @@ def test_sparse_and_dense_paths_agree(ring):
         for solver in ("sparse", "dense")
     }
     sparse, dense = results["sparse"], results["dense"]
-    assert (sparse.poses - dense.poses).abs().max() < 1e-10
+    # Each solve stops once the model decrease ½ δᵀHδ of the remaining Newton step is at most
+    # function_tolerance·F (round-off of the cost hides the rest), i.e. within
+    # √(2·ftol·F / λ_min(H)) of the optimum in the vertices' chart; the two solutions are
+    # within twice that (×4 for a last step stopped by the measured decrease instead).
+    H = torch.autograd.functional.hessian(
+        lambda d: objectives.standard_cost(graph, dense.poses @ se3.exp(d.reshape(-1, 6))),
+        torch.zeros(6 * graph.num_vertices, dtype=dense.poses.dtype),
+    )[6:, 6:]
+    radius = math.sqrt(
+        2 * TIGHT["function_tolerance"] * dense.final_cost / float(torch.linalg.eigvalsh(H).min())
+    )
+    apart = torch.linalg.vector_norm(se3.log(se3.inverse(dense.poses) @ sparse.poses), dim=-1)
+    assert float(apart.max()) <= 8 * radius < 1e-5
     assert sparse.final_cost == pytest.approx(dense.final_cost, rel=1e-12)
 
 
