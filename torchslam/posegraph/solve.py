@@ -27,6 +27,7 @@ more. The solve is not differentiable (it runs under ``torch.no_grad``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -425,6 +426,12 @@ def solve_pose_graph(
     with torch.no_grad():
         _sqrt_information(graph, priors)  # raises on a non-SPD matrix
     solver_config = _solver_config(config)
+    if isinstance(config, PoseGraphSolverConfig) and config.linear_solver == "auto":
+        # The pose-graph rule: dense up to dense_max_variables free unknowns, else sparse
+        # (a graph's pattern is sparse; no need for the general rule's work estimate).
+        free = graph.num_vertices - int(torch.unique(fixed).numel())
+        reduced = "dense" if 6 * free <= config.dense_max_variables else "sparse"
+        solver_config = dataclasses.replace(solver_config, reduced_solver=reduced)
     with torch.no_grad(), _checks.validation(False):
         T = poses.detach()
         data = graph_data(graph, priors, fixed)
