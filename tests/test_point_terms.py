@@ -18,15 +18,8 @@ from torch import Tensor
 from torchslam import HuberLoss, PointMapProblem, SolverConfig, solve
 from torchslam.data.synthetic import make_scene
 from torchslam.lie import se3
-from torchslam.problem import cost_from_poses
-from torchslam.solver.linearize import (
-    coupling_edges,
-    linearize,
-    model_decrease,
-    term_pair_keys,
-    whitening_factors,
-)
-from torchslam.terms import (
+from torchslam.objective.data import cost_from_poses
+from torchslam.objective.terms import (
     PointObservationTerm,
     Term,
     _call_residual,
@@ -35,6 +28,13 @@ from torchslam.terms import (
     term_points,
     term_poses,
     term_whitening,
+)
+from torchslam.solver.linearize import (
+    coupling_edges,
+    linearize,
+    model_decrease,
+    term_pair_keys,
+    whitening_factors,
 )
 
 F64 = torch.float64

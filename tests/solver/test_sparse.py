@@ -19,6 +19,7 @@ from torchslam.data.loop import make_loop_scene
 from torchslam.data.synthetic import make_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
+from torchslam.objective.terms import PosePriorTerm, RelativePoseTerm
 from torchslam.solver import linear, sparse
 from torchslam.solver.differentiable import ImplicitConfig
 from torchslam.solver.linearize import (
@@ -28,7 +29,6 @@ from torchslam.solver.linearize import (
     whitening_factors,
 )
 from torchslam.solver.sparse import BlockPattern, fill_reducing_order
-from torchslam.terms import PosePriorTerm, RelativePoseTerm
 
 F64 = torch.float64
 ORDERINGS = ("mmd", "colamd", "natural")

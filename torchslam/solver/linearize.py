@@ -50,8 +50,8 @@ from torch import Tensor
 
 from torchslam import losses
 from torchslam.lie import se3, so3
-from torchslam.problem import PointMapData, gather_points, jacobian_blocks, per_observation
-from torchslam.terms import (
+from torchslam.objective.data import PointMapData, gather_points, jacobian_blocks, per_observation
+from torchslam.objective.terms import (
     Term,
     masked_weighting,
     point_observation_blocks,
