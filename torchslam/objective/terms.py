@@ -71,7 +71,7 @@ __all__ = [
     "RelativePoseTerm",
     "Term",
     "bind_terms",
-    "point_observation_blocks",
+    "point_observation_jacobians",
     "term_blocks",
     "term_cost",
     "term_jacobians",
@@ -777,32 +777,27 @@ class PosePriorTerm(Term):
         return r, se3._jl_inv(-r)[..., None, :]
 
 
-def point_observation_blocks(
-    T: Tensor, points: Tensor, observations: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The ICP-SLAM point observation r = X_ij − T_i0 X_j (seed eq. 1.1) and its blocks.
+def point_observation_jacobians(T: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Blocks of the ICP-SLAM point observation r = X_ij − T_i0 X_j (seed eq. 1.1).
 
     With T ← T·Exp(δ), T Exp(δ) X ≈ T (X + ω × X + v), so ∂r/∂δ = [R [X]× | −R] and
     ∂r/∂X = −R.
 
     Args:
-        T: observing poses T_i0, (..., 4, 4); points: world points X_j, (..., 3);
-        observations: X_ij in frame i, (..., 3).
+        T: observing poses T_i0, (..., 4, 4); points: world points X_j, (..., 3).
 
     Returns:
-        (r (..., 3), J_r_xi (..., 3, 6), J_r_point (..., 3, 3)).
+        (J_r_xi (..., 3, 6), J_r_point (..., 3, 3)).
     """
     R = T[..., :3, :3]
-    r = observations - ((R @ points[..., None])[..., 0] + T[..., :3, 3])
-    J_r_point = -R
-    return r, torch.cat((R @ so3._hat(points), J_r_point), dim=-1), J_r_point
+    return torch.cat((R @ so3._hat(points), -R), dim=-1), -R
 
 
 class PointObservationTerm(Term):
     """Point observations r_k = X_k − T_i X_j (seed eq. 1.1) as a term: the residual of the
     problem's own observations (:class:`torchslam.PointMapProblem`, which keeps them in its
     data for the structured fast path), here for one more set of observations with their own
-    weights or robust kernel. Blocks: :func:`point_observation_blocks`.
+    weights or robust kernel. Blocks: :func:`point_observation_jacobians`.
 
     Args:
         pose_index: observing pose i of each observation, integer (K,) or (B, K).
@@ -843,13 +838,13 @@ class PointObservationTerm(Term):
         )
 
     def residual(self, poses: Tensor, points: Tensor, observations: Tensor) -> Tensor:
-        return point_observation_blocks(poses[..., 0, :, :], points, observations)[0]
+        return observations - se3._act(poses[..., 0, :, :], points)
 
     def jacobians(
         self, poses: Tensor, points: Tensor, observations: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        r, J_xi, J_point = point_observation_blocks(poses[..., 0, :, :], points, observations)
-        return r, J_xi[..., None, :], J_point
+        J_xi, J_point = point_observation_jacobians(poses[..., 0, :, :], points)
+        return self.residual(poses, points, observations), J_xi[..., None, :], J_point
 
 
 def term_whitening(term: Term) -> Tensor | None:
