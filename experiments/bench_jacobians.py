@@ -44,8 +44,8 @@ import torch
 from peak_memory import PeakMemory
 
 import torchslam
-from torchslam import problem as problem_module
 from torchslam.lie import se3
+from torchslam.objective import data as data_module
 from torchslam.problem import PointMapProblem
 
 MODES = ("analytic", "jacrev")
@@ -84,7 +84,7 @@ def _inputs(num_observations: int, seed: int, threads: int):
     # Warm-up on a small problem (kernels, vmap/jacrev tracing caches, lazy imports).
     small = _problem(1000, seed + 1)
     for mode in MODES:
-        problem_module.jacobian_blocks(
+        data_module.jacobian_blocks(
             small.pose_tangent.detach(), small.points.detach(), small.data, mode
         )
     gc.collect()
@@ -96,7 +96,7 @@ def _memory_worker(num_observations: int, mode: str, threads: int, seed: int) ->
     pose_tangent, points, data = _inputs(num_observations, seed, threads)
     with PeakMemory() as peak:
         start = time.perf_counter()
-        J_xi, J_point = problem_module.jacobian_blocks(pose_tangent, points, data, mode)
+        J_xi, J_point = data_module.jacobian_blocks(pose_tangent, points, data, mode)
         first_seconds = time.perf_counter() - start
     assert J_xi.shape == (1, num_observations, 3, 6) and J_point.shape[-2:] == (3, 3)
     return {
@@ -114,11 +114,11 @@ def _timing_worker(num_observations: int, runs: int, threads: int, seed: int) ->
     pose_tangent, points, data = _inputs(num_observations, seed, threads)
     times: dict[str, list[float]] = {mode: [] for mode in MODES}
     for mode in MODES:  # one untimed call at full size each
-        problem_module.jacobian_blocks(pose_tangent, points, data, mode)
+        data_module.jacobian_blocks(pose_tangent, points, data, mode)
     for _ in range(runs):
         for mode in MODES:
             start = time.perf_counter()
-            problem_module.jacobian_blocks(pose_tangent, points, data, mode)
+            data_module.jacobian_blocks(pose_tangent, points, data, mode)
             times[mode].append(time.perf_counter() - start)
     ratios = [j / a for a, j in zip(times["analytic"], times["jacrev"], strict=True)]
     out: dict = {"observations": num_observations, "runs": runs}

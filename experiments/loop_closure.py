@@ -49,7 +49,7 @@ from torchslam.data.loop import LoopScene, make_loop_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
 from torchslam.metrics import evaluate
-from torchslam.terms import RelativePoseTerm
+from torchslam.objective.terms import RelativePoseTerm
 
 OBJECTIVES = ("points", "points+odometry", "points+odometry+loop")
 OUT = Path(__file__).resolve().parents[1] / "out"

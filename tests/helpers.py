@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -49,3 +52,16 @@ def central_difference(f: Callable[[Tensor], Tensor], x: Tensor, eps: float = 1e
         step[i] = eps
         columns.append((f(x + step) - f(x - step)).reshape(-1) / (2 * eps))
     return torch.stack(columns, dim=-1)
+
+
+def load_example(name: str):
+    """The module of ``examples/<name>.py``, loaded once and registered in ``sys.modules`` as
+    ``examples_<name>`` (so that ``inspect.getsource`` finds its classes)."""
+    module_name = f"examples_{name}"
+    if module_name not in sys.modules:
+        path = Path(__file__).resolve().parent.parent / "examples" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(module_name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[module_name]

@@ -9,12 +9,9 @@ gives are checked against analytic ones and central differences.
 
 from __future__ import annotations
 
-import importlib.util
 import inspect
 import re
 import runpy
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,28 +19,18 @@ import scipy.optimize
 import torch
 from torch import Tensor
 
+from tests.helpers import load_example
 from torchslam import SolverConfig, solve
 from torchslam.lie import se3, so3
-from torchslam.problem import cost as problem_cost
-from torchslam.terms import term_blocks, term_points, term_poses
+from torchslam.objective.data import cost as problem_cost
+from torchslam.objective.terms import term_blocks, term_points, term_poses
 
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "bundle_adjustment.py"
 F64 = torch.float64
 FD_STEP = 1e-6
 TIGHT = dict(function_tolerance=1e-15, gradient_tolerance=1e-10, parameter_tolerance=1e-15)
 
 
-def _load_example():
-    name = "examples_bundle_adjustment"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, EXAMPLE)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module  # inspect.getsource finds the class through it
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-example = _load_example()
+example = load_example("bundle_adjustment")
 ReprojectionTerm = example.ReprojectionTerm
 
 
@@ -181,7 +168,7 @@ def test_dense_and_schur_solves_agree():
 
 
 def test_example_runs_as_a_script(capsys):
-    runpy.run_path(str(EXAMPLE), run_name="__main__")
+    runpy.run_path(example.__file__, run_name="__main__")
     out = capsys.readouterr().out
     match = re.search(r"reprojection rms ([0-9.]+) px", out)
     assert match, out

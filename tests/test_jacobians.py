@@ -20,9 +20,9 @@ from tests.helpers import (
     twists_with_hard_inputs,
 )
 from torchslam import jacobians
-from torchslam import problem as problem_module
 from torchslam.data.synthetic import make_scene
 from torchslam.lie import se3, so3
+from torchslam.objective import data as data_module
 from torchslam.problem import PointMapProblem
 
 F64 = torch.float64
@@ -187,8 +187,8 @@ def _fd_atol(problem: PointMapProblem) -> Tensor:
 
 def _cd_blocks(problem: PointMapProblem) -> tuple[Tensor, Tensor]:
     data = problem.data
-    xi_e = problem_module.gather_poses(problem.pose_tangent.detach(), data)
-    X_e = problem_module.gather_points(problem.points.detach(), data)
+    xi_e = data_module.gather_poses(problem.pose_tangent.detach(), data)
+    X_e = data_module.gather_points(problem.points.detach(), data)
     return jacobians.central_difference_blocks(xi_e, X_e, data.observations, eps=FD_STEP)
 
 
@@ -272,9 +272,9 @@ def test_first_order_expansion_on_the_manifold(generator):
         dX = h * torch.randn(B, n, 3, generator=generator, dtype=F64)
         r0 = problem.raw_residuals().detach()
         J_xi, J_point = problem.jacobian_blocks()
-        delta_e = problem_module.gather_poses(delta, data)
-        dX_e = problem_module.gather_points(dX, data)
-        X_e = problem_module.gather_points(problem.points.detach(), data)
+        delta_e = data_module.gather_poses(delta, data)
+        dX_e = data_module.gather_points(dX, data)
+        X_e = data_module.gather_points(problem.points.detach(), data)
         linear = (J_xi @ delta_e[..., None] + J_point @ dX_e[..., None])[..., 0]
         with torch.no_grad():
             problem.pose_tangent.copy_(se3.log(problem.poses() @ se3.exp(delta)))
@@ -294,7 +294,7 @@ def test_pose_block_is_point_block_times_generator(mode, generator):
     """J_pose = J_point · [−[X]× | I] (the solver relies on the shared factor −R)."""
     for problem in (_random_problem(seed=4), _hard_problem(generator)):
         J_xi, J_point = problem.jacobian_blocks(mode)
-        X_e = problem_module.gather_points(problem.points.detach(), problem.data)
+        X_e = data_module.gather_points(problem.points.detach(), problem.data)
         eye = torch.eye(3, dtype=F64).expand(*X_e.shape[:-1], 3, 3)
         G = torch.cat((-so3.hat(X_e), eye), dim=-1)
         _assert_blocks_close((J_point @ G, J_point), (J_xi, J_point), rtol=EXACT_RTOL)

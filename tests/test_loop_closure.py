@@ -24,7 +24,7 @@ from torchslam.data.loop import LoopScene, make_loop_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
 from torchslam.metrics import evaluate
-from torchslam.terms import RelativePoseTerm
+from torchslam.objective.terms import RelativePoseTerm
 
 SEEDS = range(5)
 SCENE = {"num_poses": 30, "points_per_frame": 10, "window": 3, "noise_std": 0.03}

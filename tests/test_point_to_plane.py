@@ -7,20 +7,19 @@ uses for it are checked against these and against central differences on the man
 
 from __future__ import annotations
 
-import importlib.util
 import inspect
 import math
 import re
 import runpy
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
+from tests.helpers import load_example
 from torchslam import SolverConfig, solve, validation
 from torchslam.lie import se3, so3
-from torchslam.terms import term_jacobians, term_poses
+from torchslam.objective.terms import term_jacobians, term_poses
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "point_to_plane.py"
 F64 = torch.float64
@@ -28,17 +27,7 @@ FD_STEP = 1e-6
 TIGHT = dict(function_tolerance=1e-15, gradient_tolerance=1e-12, parameter_tolerance=1e-15)
 
 
-def _load_example():
-    name = "examples_point_to_plane"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, EXAMPLE)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module  # inspect.getsource finds the class through it
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-example = _load_example()
+example = load_example("point_to_plane")
 PointToPlane = example.PointToPlane
 
 

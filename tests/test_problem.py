@@ -14,10 +14,10 @@ import torch
 from torch import Tensor, nn
 
 from tests.helpers import TOL
-from torchslam import problem as problem_module
 from torchslam.data.synthetic import make_scene
 from torchslam.lie import se3
 from torchslam.losses import HuberLoss
+from torchslam.objective import data as data_module
 from torchslam.problem import PointMapProblem
 
 F64 = torch.float64
@@ -265,7 +265,7 @@ def test_cost_is_differentiable_wrt_everything_gradcheck():
 
     def cost(pose_tangent, points, observations, weights):
         replaced = dataclasses.replace(data, observations=observations, weights=weights)
-        return problem_module.cost(pose_tangent, points, replaced)
+        return data_module.cost(pose_tangent, points, replaced)
 
     inputs = (
         problem.pose_tangent.detach().clone().requires_grad_(True),
@@ -288,11 +288,11 @@ def test_cost_and_whitened_residuals_gradcheck_wrt_information():
 
     def cost(A):
         replaced = dataclasses.replace(data, information=information(A))
-        return problem_module.cost(problem.pose_tangent.detach(), problem.points.detach(), replaced)
+        return data_module.cost(problem.pose_tangent.detach(), problem.points.detach(), replaced)
 
     def whitened(A):
         replaced = dataclasses.replace(data, information=information(A))
-        raw = problem_module.raw_residuals(
+        raw = data_module.raw_residuals(
             problem.pose_tangent.detach(), problem.points.detach(), replaced
         )
         return replaced.whiten(raw)
@@ -309,7 +309,7 @@ def test_robust_cost_gradcheck():
 
     def cost(pose_tangent, points, observations):
         replaced = dataclasses.replace(data, observations=observations)
-        return problem_module.cost(pose_tangent, points, replaced)
+        return data_module.cost(pose_tangent, points, replaced)
 
     inputs = (
         problem.pose_tangent.detach().clone().requires_grad_(True),

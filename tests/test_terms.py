@@ -1,4 +1,4 @@
-"""Pose terms (torchslam.terms): Jacobian blocks, costs, problems with terms, errors, solves.
+"""Terms (torchslam.objective.terms): Jacobian blocks, costs, problems with terms, errors, solves.
 
 Conventions: ξ = (ω, v) rotation first; right perturbation T ← T·Exp(δ); poses T_i0 map world
 → frame i. RelativePoseTerm r = Log(Z⁻¹ T_i T_j⁻¹) with Z ≈ T_i T_j⁻¹; PosePriorTerm
@@ -16,10 +16,10 @@ from torch import Tensor
 
 import torchslam
 from torchslam import HuberLoss, PointMapProblem, SolverConfig, solve, validation
-from torchslam import problem as problem_module
 from torchslam.data.synthetic import make_scene
 from torchslam.lie import se3
-from torchslam.terms import (
+from torchslam.objective import data as data_module
+from torchslam.objective.terms import (
     PosePriorTerm,
     RelativePoseTerm,
     Term,
@@ -622,7 +622,7 @@ def _assert_stationary(problem: PointMapProblem, initial: PointMapProblem, rtol:
 
     def cost(x: Tensor) -> Tensor:
         xi = torch.cat((xi0[:1], x[: 6 * (m - 1)].reshape(m - 1, 6)))
-        return problem_module.cost(xi[None], x[6 * (m - 1) :].reshape(1, -1, 3), problem.data)[0]
+        return data_module.cost(xi[None], x[6 * (m - 1) :].reshape(1, -1, 3), problem.data)[0]
 
     x = torch.cat((xi0[1:].reshape(-1), X0.reshape(-1)))
     with validation(False):

@@ -23,7 +23,9 @@ from torchslam import (
 from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
-from torchslam.problem import PointMapData, PointMapProblem
+from torchslam.objective import PointMapData
+from torchslam.objective.terms import PointObservationTerm, PosePriorTerm, RelativePoseTerm, Term
+from torchslam.problem import PointMapProblem
 from torchslam.solver import (
     ImplicitConfig,
     IterationInfo,
@@ -34,7 +36,6 @@ from torchslam.solver import (
     solve_differentiable,
     solve_tensors,
 )
-from torchslam.terms import PointObservationTerm, PosePriorTerm, RelativePoseTerm, Term
 
 __version__ = "0.1.0"
 

@@ -21,7 +21,7 @@ from torchslam.data.synthetic import SyntheticScene, make_scene
 from torchslam.initialization import Initialization, initialize_scene
 from torchslam.lie import se3
 from torchslam.metrics import evaluate
-from torchslam.problem import (
+from torchslam.objective.data import (
     PointMapData,
     jacobian_blocks,
     per_observation,

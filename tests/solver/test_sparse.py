@@ -19,6 +19,7 @@ from torchslam.data.loop import make_loop_scene
 from torchslam.data.synthetic import make_scene
 from torchslam.initialization import average_points, chain_relative_poses
 from torchslam.lie import se3
+from torchslam.objective.terms import PosePriorTerm, RelativePoseTerm
 from torchslam.solver import plan as plan_module
 from torchslam.solver import sparse
 from torchslam.solver.differentiable import ImplicitConfig
@@ -29,7 +30,6 @@ from torchslam.solver.linearize import (
     whitening_factors,
 )
 from torchslam.solver.sparse import BlockPattern, fill_reducing_order
-from torchslam.terms import PosePriorTerm, RelativePoseTerm
 
 from . import factorize, solve_step
 

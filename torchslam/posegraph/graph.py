@@ -19,7 +19,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
-from torchslam.terms import RelativePoseTerm
+from torchslam.objective.terms import RelativePoseTerm
 
 __all__ = ["PoseGraph"]
 

@@ -39,13 +39,13 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
+from torchslam.objective.data import PointMapData
+from torchslam.objective.terms import PosePriorTerm
 from torchslam.posegraph.graph import PoseGraph, check_information, check_vertex_indices
-from torchslam.problem import PointMapData
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_int, check_number
 from torchslam.solver.plan import LinearPlan
 from torchslam.solver.result import REASONS, IterationInfo, SolveResult, Status
-from torchslam.terms import PosePriorTerm
 
 __all__ = [
     "IterationInfo",

@@ -98,7 +98,7 @@ from torch import Tensor
 
 from torchslam import _checks, losses
 from torchslam.lie import se3
-from torchslam.problem import PointMapData, cost, cost_from_poses
+from torchslam.objective.data import PointMapData, cost, cost_from_poses
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_implicit_config
 from torchslam.solver.linearize import linearize, whitening_factors

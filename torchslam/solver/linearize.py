@@ -51,11 +51,11 @@ from torch import Tensor
 
 from torchslam import losses
 from torchslam.lie import se3, so3
-from torchslam.problem import PointMapData, gather_points, jacobian_blocks, per_observation
-from torchslam.terms import (
+from torchslam.objective.data import PointMapData, gather_points, jacobian_blocks, per_observation
+from torchslam.objective.terms import (
     Term,
     masked_weighting,
-    point_observation_blocks,
+    point_observation_jacobians,
     term_blocks,
     term_points,
     term_poses,
@@ -334,7 +334,7 @@ def _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structu
             return _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data)
 
     if jacobian_mode == "analytic":
-        _, J_xi, J_X = point_observation_blocks(T_e, X_e, data.masked_observations())
+        J_xi, J_X = point_observation_jacobians(T_e, X_e)
     else:
         J_xi, J_X = jacobian_blocks(pose_tangent, points, data, jacobian_mode)
     return _blocks(r, J_xi, J_X, factor, free_pose, free_point, data)
@@ -481,13 +481,12 @@ def instance_blocks(
         r = residual_scale[..., None] * r
         r = torch.where(valid_r, r, torch.zeros_like(r))
         J = torch.where(valid_J, J, torch.zeros_like(J))
+    # w on one side only: a (c × d) pass instead of a (c × c) one (J̃ᵀJ̃·w is then symmetric
+    # to round-off only).
     Jt = J.transpose(-1, -2)
-    JtJ = _matmul(Jt, J)
-    Jtr = _matmul(Jt, r[..., None])[..., 0]
     if weight is not None:
-        JtJ = weight[..., None, None] * JtJ
-        Jtr = weight[..., None] * Jtr
-    return cost, r, J, weight, JtJ, Jtr
+        Jt = weight[..., None, None] * Jt
+    return cost, r, J, weight, _matmul(Jt, J), _matmul(Jt, r[..., None])[..., 0]
 
 
 def term_pair_keys(data: PointMapData) -> Tensor:
@@ -615,8 +614,8 @@ def model_decrease(
         quad = (lin.weight * (u * u).sum(-1)).sum(-1)
     else:
         Jd = (lin.jacobian @ torch.cat((dp_e, dl_e), -1)[..., None])[..., 0]
-        squares = (Jd * Jd).sum(-1)
-        quad = (squares if lin.scale is None else lin.scale * squares).sum(-1)
+        squares = Jd * Jd if lin.scale is None else lin.scale[..., None] * (Jd * Jd)
+        quad = squares.sum((-1, -2))  # one reduction: summing 3 entries per row first is slow
     if lin.terms is not None:
         B, m = dp.shape[:2]
         n = dl.shape[1]

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from torchslam import manifold
-from torchslam.problem import PointMapData
+from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import linearize, model_decrease, whitening_factors
 from torchslam.solver.plan import LinearPlan

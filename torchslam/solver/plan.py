@@ -40,7 +40,7 @@ import scipy.sparse
 import torch
 from torch import Tensor
 
-from torchslam.problem import PointMapData
+from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import (
     BlockLinearization,

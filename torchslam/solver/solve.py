@@ -17,7 +17,8 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks, losses
-from torchslam.problem import PointMapData, PointMapProblem, check_data_values
+from torchslam.objective.data import PointMapData, check_data_values
+from torchslam.problem import PointMapProblem
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.result import IterationInfo, SolveResult, Status
