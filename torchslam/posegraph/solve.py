@@ -441,16 +441,7 @@ def solve_pose_graph(
         def report(state: loop.State) -> None:
             if callback is None and not logger.isEnabledFor(logging.INFO):
                 return
-            info = IterationInfo(
-                iteration=int(state.iterations.max()),
-                cost=state.cost.clone(),
-                damping=state.lam.clone(),
-                step_norm=state.step_norm,
-                accepted=state.last_accepted,
-                active=state.status == int(Status.RUNNING),
-                gradient_norm=loop.gradient_norm(state.lin),
-                seconds=time.perf_counter() - start,
-            )
+            info = loop.iteration_info(state, int(state.iterations.max()), start)
             if callback is not None:
                 callback(info)
             logger.info(

@@ -31,7 +31,7 @@ from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import linearize, model_decrease, whitening_factors
 from torchslam.solver.plan import LinearPlan
-from torchslam.solver.result import SolveResult, Status
+from torchslam.solver.result import IterationInfo, SolveResult, Status
 
 __all__ = ["State", "retract", "run", "update_status"]
 
@@ -288,6 +288,21 @@ def iterate(
         if on_step is not None:
             on_step(s)
     return s
+
+
+def iteration_info(state: State, iteration: int, start: float) -> IterationInfo:
+    """The :class:`IterationInfo` a callback receives after iteration ``iteration`` of a solve
+    that started at ``time.perf_counter()`` = ``start``."""
+    return IterationInfo(
+        iteration=iteration,
+        cost=state.cost.detach().clone(),
+        damping=state.lam.clone(),
+        step_norm=state.step_norm,
+        accepted=state.last_accepted,
+        active=state.status == int(Status.RUNNING),
+        gradient_norm=gradient_norm(state.lin).detach(),
+        seconds=time.perf_counter() - start,
+    )
 
 
 def finish(state: State, config: SolverConfig) -> State:

@@ -21,7 +21,7 @@ from torchslam.objective.data import PointMapData, check_data_values
 from torchslam.problem import PointMapProblem
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig
-from torchslam.solver.result import IterationInfo, SolveResult, Status
+from torchslam.solver.result import IterationInfo, SolveResult
 
 __all__ = ["IterationInfo", "check_solve_inputs", "solve", "solve_tensors"]
 
@@ -128,16 +128,7 @@ def _solve_tensors(
         count[0] += 1
         if callback is None and not logger.isEnabledFor(logging.INFO):
             return
-        info = IterationInfo(
-            iteration=count[0],
-            cost=state.cost.clone(),
-            damping=state.lam.clone(),
-            step_norm=state.step_norm,
-            accepted=state.last_accepted,
-            active=state.status == int(Status.RUNNING),
-            gradient_norm=loop.gradient_norm(state.lin),
-            seconds=time.perf_counter() - start,
-        )
+        info = loop.iteration_info(state, count[0], start)
         if callback is not None:
             callback(info)
         logger.info(
