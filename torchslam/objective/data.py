@@ -27,6 +27,7 @@ from torch import Tensor
 from torchslam import _checks, jacobians, losses
 from torchslam.lie import se3
 from torchslam.objective.terms import Term, terms_cost
+from torchslam.objective.whitening import whiten, whitening
 
 __all__ = [
     "PointMapData",
@@ -172,11 +173,7 @@ class PointMapData:
         """
         column = vectors.dim() == 3
         v = vectors[..., None] if column else vectors
-        if self.information is not None:
-            L = torch.linalg.cholesky(self.masked_information())
-            v = L.transpose(-1, -2) @ v
-        elif self.weights is not None:
-            v = torch.sqrt(self.masked_weights())[..., None, None] * v
+        v = whiten(whitening(self.masked_weights(), self.masked_information()), v)
         v = torch.where(self.valid[..., None, None], v, 0.0)
         return v[..., 0] if column else v
 

@@ -64,6 +64,8 @@ from torch import Tensor
 
 from torchslam import _checks, losses
 from torchslam.lie import se3, so3
+from torchslam.manifold import right_jacobian_jacrev
+from torchslam.objective.whitening import whitening
 
 __all__ = [
     "PointObservationTerm",
@@ -586,27 +588,35 @@ def term_blocks(
         J_point = r.new_zeros(B, K, d, 3) if term.has_point else None
         return r, r.new_zeros(B, K, d, a, 6), J_point
 
-    def perturbed(delta: Tensor, step: Tensor, T: Tensor, X: Tensor, constants) -> Tensor:
-        return _call_residual(term, T @ se3._exp(delta), X + step, constants)
-
-    flat_constants = {k: v.reshape(B * K, *v.shape[2:]) for k, v in constants.items()}
-    X = points.reshape(B * K, 3) if term.has_point else poses.new_zeros(B * K, 3)
-    J, J_point = torch.func.vmap(torch.func.jacrev(perturbed, argnums=(0, 1)))(
-        poses.new_zeros(B * K, a, 6),
-        poses.new_zeros(B * K, 3),
-        poses.reshape(B * K, a, 4, 4),
-        X,
-        flat_constants,
-    )
-    J = J.reshape(B, K, *J.shape[1:])
+    if a == 0:  # a term on a point only (e.g. a point prior)
+        no_poses = poses.new_zeros(0, 4, 4)
+        (J_point,) = right_jacobian_jacrev(
+            lambda X, **c: term.residual(no_poses, X, **c),
+            (),
+            (points,),
+            constants=constants,
+            batch_dims=2,
+        )
+        J = J_point.new_zeros(B, K, d, 0, 6)
+    elif term.has_point:
+        J, J_point = right_jacobian_jacrev(
+            lambda T, X, **c: term.residual(T, X, **c),
+            (poses,),
+            (points,),
+            constants=constants,
+            batch_dims=2,
+        )
+    else:
+        (J,) = right_jacobian_jacrev(
+            lambda T, **c: term.residual(T, **c), (poses,), constants=constants, batch_dims=2
+        )
     if tuple(J.shape) != (B, K, d, a, 6):
         raise ValueError(
             f"{name}.residual: for one instance (poses (a, 4, 4) = {(a, 4, 4)}, no batch dims) "
             f"it must return shape (d,) = ({d},), got {tuple(J.shape[2:-2])}; compute it "
             "batched over all leading dims (use '...')"
         )
-    J_point = J_point.reshape(B, K, d, 3) if term.has_point else None
-    return r, J, J_point
+    return r, J, (J_point if term.has_point else None)
 
 
 def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[Tensor, Tensor]:
@@ -849,12 +859,7 @@ class PointObservationTerm(Term):
 
 def term_whitening(term: Term) -> Tensor | None:
     """U with UᵀU = Ω per instance (B, K, d, d), √w (B, K), or None for unit weights."""
-    weight, information = masked_weighting(term)
-    if information is not None:
-        return torch.linalg.cholesky(information).transpose(-1, -2)
-    if weight is not None:
-        return torch.sqrt(weight)
-    return None
+    return whitening(*masked_weighting(term))
 
 
 def term_squared_norms(term: Term, r: Tensor) -> Tensor:

@@ -51,7 +51,12 @@ from torch import Tensor
 
 from torchslam import losses
 from torchslam.lie import se3, so3
-from torchslam.objective.data import PointMapData, gather_points, jacobian_blocks, per_observation
+from torchslam.objective.data import (
+    PointMapData,
+    gather_points,
+    jacobian_blocks,
+    per_observation,
+)
 from torchslam.objective.terms import (
     Term,
     masked_weighting,
@@ -62,6 +67,7 @@ from torchslam.objective.terms import (
     term_whitening,
     terms_cost,
 )
+from torchslam.objective.whitening import whiten, whitening
 
 __all__ = [
     "BlockLinearization",
@@ -212,20 +218,7 @@ class StructuredLinearization:
 
 def whitening_factors(data: PointMapData) -> Tensor | None:
     """Lᵀ with Ω = L Lᵀ per observation (B, E, 3, 3), √w (B, E), or None for unit weights."""
-    if data.information is not None:
-        return torch.linalg.cholesky(data.masked_information()).transpose(-1, -2)
-    if data.weights is not None:
-        return torch.sqrt(data.masked_weights())
-    return None
-
-
-def _whiten(factor: Tensor | None, x: Tensor) -> Tensor:
-    """Apply a whitening factor to (B, E, 3, k)."""
-    if factor is None:
-        return x
-    if factor.dim() == 2:
-        return factor[..., None, None] * x
-    return factor @ x
+    return whitening(data.masked_weights(), data.masked_information())
 
 
 def monomials(points: Tensor) -> Tensor:
@@ -580,7 +573,7 @@ def cost_at(
 ) -> Tensor:
     """½ Σ ρ(s) per problem, (B,), with the same whitening as :func:`linearize`."""
     r, _, _ = _residuals(pose_tangent, points, data)
-    rw = _whiten(factor, r[..., None])
+    rw = whiten(factor, r[..., None])
     s = (rw * rw).sum(dim=(-1, -2))
     if data.loss is not None:
         s = data.loss(s)[0]
