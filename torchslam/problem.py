@@ -310,7 +310,7 @@ class PointMapProblem(nn.Module):
 
     def poses(self) -> Tensor:
         """Current poses T_i0 = Exp(ξ_i), shape (B, m, 4, 4)."""
-        return se3._exp(self.pose_tangent)
+        return se3.exp(self.pose_tangent, form="fast")
 
     def raw_residuals(self) -> Tensor:
         """r_e = X_ij − T_i0 X_j, (B, E, 3), zero on padding (differentiable w.r.t. all)."""

@@ -234,13 +234,13 @@ def raw_residuals_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> T
     """r_e = X_ij − T_i X_j from pose matrices T (B, m, 4, 4); (B, E, 3), zero on padding."""
     T_e = per_observation(T, data.flat_pose_index)
     X_e = gather_points(points, data)
-    r = data.masked_observations() - se3._act(T_e, X_e)
+    r = data.masked_observations() - se3.act(T_e, X_e)
     return torch.where(data.valid[..., None], r, torch.zeros_like(r))
 
 
 def raw_residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
     """r_e = X_ij − Exp(ξ_i) X_j, (B, E, 3), zero on padding."""
-    return raw_residuals_from_poses(se3._exp(pose_tangent), points, data)
+    return raw_residuals_from_poses(se3.exp(pose_tangent, form="fast"), points, data)
 
 
 def cost_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
@@ -254,7 +254,7 @@ def cost_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
 
 def cost(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
     """½ Σ_e ρ(r_eᵀ Ω_e r_e) + the terms' costs per problem, (B,)."""
-    return cost_from_poses(se3._exp(pose_tangent), points, data)
+    return cost_from_poses(se3.exp(pose_tangent, form="fast"), points, data)
 
 
 def jacobian_blocks(
@@ -263,7 +263,7 @@ def jacobian_blocks(
     """Raw-residual Jacobian blocks (B, E, 3, 6) and (B, E, 3, 3); see :mod:`jacobians`."""
     X_e = gather_points(points, data)
     if mode == "analytic":
-        R_e = per_observation(se3._exp(pose_tangent)[..., :3, :3], data.flat_pose_index)
+        R_e = per_observation(se3.exp(pose_tangent, form="fast")[..., :3, :3], data.flat_pose_index)
         return jacobians.analytic_blocks(R_e, X_e)
     if mode == "jacrev":
         xi_e = gather_poses(pose_tangent, data)

@@ -63,6 +63,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks, losses
+from torchslam._batched import matmul
 from torchslam.lie import se3, so3
 from torchslam.manifold import right_jacobian_jacrev
 from torchslam.objective.whitening import whitening
@@ -739,11 +740,13 @@ class RelativePoseTerm(Term):
 
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
         T_i, T_j = poses[..., 0, :, :], poses[..., 1, :, :]
-        return se3._log(se3._inverse(measurements) @ T_i @ se3._inverse(T_j))
+        return se3.log(se3.inverse(measurements) @ T_i @ se3.inverse(T_j))
 
     def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
         r = self.residual(poses, measurements)
-        J_i = se3._jl_inv(-r) @ se3._adjoint(poses[..., 1, :, :])  # Jr⁻¹(r) = Jl⁻¹(−r)
+        J_i = matmul(
+            se3.jr_inv(r, form="fast"), se3.adjoint(poses[..., 1, :, :])
+        )  # Jr⁻¹(r) = Jl⁻¹(−r)
         return r, torch.stack((J_i, -J_i), dim=-2)
 
 
@@ -780,11 +783,11 @@ class PosePriorTerm(Term):
         )
 
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
-        return se3._log(se3._inverse(measurements) @ poses[..., 0, :, :])
+        return se3.log(se3.inverse(measurements) @ poses[..., 0, :, :])
 
     def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
         r = self.residual(poses, measurements)
-        return r, se3._jl_inv(-r)[..., None, :]
+        return r, se3.jr_inv(r, form="fast")[..., None, :]
 
 
 def point_observation_jacobians(T: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
@@ -800,7 +803,7 @@ def point_observation_jacobians(T: Tensor, points: Tensor) -> tuple[Tensor, Tens
         (J_r_xi (..., 3, 6), J_r_point (..., 3, 3)).
     """
     R = T[..., :3, :3]
-    return torch.cat((R @ so3._hat(points), -R), dim=-1), -R
+    return torch.cat((R @ so3.hat(points), -R), dim=-1), -R
 
 
 class PointObservationTerm(Term):
@@ -848,7 +851,7 @@ class PointObservationTerm(Term):
         )
 
     def residual(self, poses: Tensor, points: Tensor, observations: Tensor) -> Tensor:
-        return observations - se3._act(poses[..., 0, :, :], points)
+        return observations - se3.act(poses[..., 0, :, :], points)
 
     def jacobians(
         self, poses: Tensor, points: Tensor, observations: Tensor

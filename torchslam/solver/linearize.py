@@ -45,11 +45,11 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from torchslam import losses
+from torchslam._batched import matmul
 from torchslam.lie import se3, so3
 from torchslam.objective.data import (
     PointMapData,
@@ -255,9 +255,9 @@ def blocks_from_monomials(c: Tensor) -> Tensor:
 
 
 def _residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData):
-    T_e = per_observation(se3._exp(pose_tangent), data.flat_pose_index)
+    T_e = per_observation(se3.exp(pose_tangent, form="fast"), data.flat_pose_index)
     X_e = gather_points(points, data)
-    r = data.masked_observations() - se3._act(T_e, X_e)
+    r = data.masked_observations() - se3.act(T_e, X_e)
     return torch.where(data.valid[..., None], r, 0.0), T_e, X_e
 
 
@@ -284,7 +284,7 @@ def linearize(
     lin = _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structured)
     if not data.terms:
         return lin
-    terms = linearize_terms(se3._exp(pose_tangent), points, data, jacobian_mode)
+    terms = linearize_terms(se3.exp(pose_tangent, form="fast"), points, data, jacobian_mode)
     changes = {}
     if isinstance(lin, BlockLinearization) and terms.coupling.shape[1] > 0:
         changes = dict(
@@ -403,22 +403,6 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
     )
 
 
-def _matmul(a: Tensor, b: Tensor) -> Tensor:
-    """a @ b for stacks of small matrices. On the CPU, outside autograd and torch.func, NumPy's
-    matmul (a loop of small products in C) is several times faster than torch's batched one
-    for 6 × 6 to 12 × 12 blocks; the values are the same products."""
-    if (
-        a.device.type == "cpu"
-        and b.device.type == "cpu"
-        and not (torch.is_grad_enabled() and (a.requires_grad or b.requires_grad))
-        and not torch._C._functorch.is_functorch_wrapped_tensor(a)
-        and not torch._C._functorch.is_functorch_wrapped_tensor(b)
-        and a.dtype == b.dtype
-    ):
-        return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
-    return a @ b
-
-
 def instance_blocks(
     r: Tensor,
     J: Tensor,
@@ -454,8 +438,8 @@ def instance_blocks(
     r = torch.where(valid_r, r, 0.0)
     J = torch.where(valid_J, J, 0.0)
     if whitening is not None:
-        r = _matmul(whitening, r[..., None])[..., 0]
-        J = _matmul(whitening, J)
+        r = matmul(whitening, r[..., None])[..., 0]
+        J = matmul(whitening, J)
     if weight is not None:
         weight = torch.where(valid, weight, torch.zeros_like(weight))
     s = (r * r).sum(-1)
@@ -479,7 +463,7 @@ def instance_blocks(
     Jt = J.transpose(-1, -2)
     if weight is not None:
         Jt = weight[..., None, None] * Jt
-    return cost, r, J, weight, _matmul(Jt, J), _matmul(Jt, r[..., None])[..., 0]
+    return cost, r, J, weight, matmul(Jt, J), matmul(Jt, r[..., None])[..., 0]
 
 
 def term_pair_keys(data: PointMapData) -> Tensor:
@@ -578,7 +562,7 @@ def cost_at(
     if data.loss is not None:
         s = data.loss(s)[0]
     points_cost = 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
-    return points_cost + terms_cost(data.terms, se3._exp(pose_tangent), points)
+    return points_cost + terms_cost(data.terms, se3.exp(pose_tangent, form="fast"), points)
 
 
 def model_decrease(
@@ -601,7 +585,7 @@ def model_decrease(
         # J̃δ = √w · (−R)(δX + δω × X + δv): its norm needs no R.
         u = (
             dl_e * lin.free_point[..., None]
-            + (so3._hat(dp_e[..., :3]) @ X_e[..., None])[..., 0] * lin.free_pose[..., None]
+            + (so3.hat(dp_e[..., :3]) @ X_e[..., None])[..., 0] * lin.free_pose[..., None]
             + dp_e[..., 3:] * lin.free_pose[..., None]
         )
         quad = (lin.weight * (u * u).sum(-1)).sum(-1)
