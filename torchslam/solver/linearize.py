@@ -254,8 +254,9 @@ def blocks_from_monomials(c: Tensor) -> Tensor:
     return torch.cat((torch.cat((top_left, skew), -1), torch.cat((-skew, eye), -1)), -2)
 
 
-def _residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData):
-    T_e = per_observation(se3.exp(pose_tangent, form="fast"), data.flat_pose_index)
+def _residuals(poses: Tensor, points: Tensor, data: PointMapData):
+    """(r (B, E, 3), T_e, X_e) of the point observations at poses T (B, m, 4, 4)."""
+    T_e = per_observation(poses, data.flat_pose_index)
     X_e = gather_points(points, data)
     r = data.masked_observations() - se3.act(T_e, X_e)
     return torch.where(data.valid[..., None], r, 0.0), T_e, X_e
@@ -281,10 +282,11 @@ def linearize(
     (its information matrices' factors are reused; scalar weights are read from ``data``).
     """
     structured = structured and not point_terms(data)
-    lin = _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structured)
+    poses = se3.exp(pose_tangent, form="fast")
+    lin = _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured)
     if not data.terms:
         return lin
-    terms = linearize_terms(se3.exp(pose_tangent, form="fast"), points, data, jacobian_mode)
+    terms = linearize_terms(poses, points, data, jacobian_mode)
     changes = {}
     if isinstance(lin, BlockLinearization) and terms.coupling.shape[1] > 0:
         changes = dict(
@@ -302,8 +304,8 @@ def linearize(
     )
 
 
-def _linearize_points(pose_tangent, points, data, factor, jacobian_mode, structured):
-    r, T_e, X_e = _residuals(pose_tangent, points, data)
+def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured):
+    r, T_e, X_e = _residuals(poses, points, data)
     free_pose = ~torch.gather(data.fixed_poses, 1, data.pose_index)
     free_point = ~torch.gather(data.fixed_points, 1, data.point_index)
     valid = data.valid
@@ -556,13 +558,14 @@ def cost_at(
     pose_tangent: Tensor, points: Tensor, data: PointMapData, factor: Tensor | None
 ) -> Tensor:
     """½ Σ ρ(s) per problem, (B,), with the same whitening as :func:`linearize`."""
-    r, _, _ = _residuals(pose_tangent, points, data)
+    poses = se3.exp(pose_tangent, form="fast")
+    r, _, _ = _residuals(poses, points, data)
     rw = whiten(factor, r[..., None])
     s = (rw * rw).sum(dim=(-1, -2))
     if data.loss is not None:
         s = data.loss(s)[0]
     points_cost = 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
-    return points_cost + terms_cost(data.terms, se3.exp(pose_tangent, form="fast"), points)
+    return points_cost + terms_cost(data.terms, poses, points)
 
 
 def model_decrease(
