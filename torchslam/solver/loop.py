@@ -251,7 +251,12 @@ def iterate(
         xi = torch.where(accepted[:, None, None], xi_new, xi)
         X = torch.where(accepted[:, None, None], X_new, X)
         cost = torch.where(accepted, lin_new.cost, cost)
-        lin = _select(accepted, lin_new, lin)
+        # Whole-batch outcomes (every solve of one problem) keep one of the two as it is.
+        taken = int(accepted.sum())
+        if taken == accepted.numel():
+            lin = lin_new
+        elif taken > 0:
+            lin = _select(accepted, lin_new, lin)
         if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
             lin = linearize(xi, X, data, factor, config.jacobian, structured)
         with torch.no_grad():
