@@ -446,7 +446,7 @@ class LinearPlan:
             X_e = lin.points.reshape(-1, 3)[point_slot]
             elim = _StructuredElimination(w, X_e, v_d, pose_slot, point_slot, self.shape)
             dense = None
-            if self.sparse:
+            if self.sparse and self._pairs().num_pairs > 0:
                 pairs = self._pairs()
                 coefficient = -(w[pairs.first] * w[pairs.second]) / v_d.reshape(-1)[pairs.point]
                 mirror = pairs.same_pose & ~pairs.self_pair
@@ -455,7 +455,7 @@ class LinearPlan:
                 sums = mono.new_zeros(self.reduced.num_slots, 10)
                 sums = sums.index_add(0, self.pair_slots, mono)
                 upper = upper + blocks_from_monomials(sums)
-            else:
+            elif not self.sparse and n > 0:
                 dense = -self._monomial_products(lin, v_d)
             return Factorization(self.reduced.factor(upper, dense), elim, None, self.shape)
         V = damp(lin.point_blocks, lam, self.damping)
