@@ -861,8 +861,29 @@ class PointObservationTerm(Term):
 
 
 def term_whitening(term: Term) -> Tensor | None:
-    """U with UᵀU = Ω per instance (B, K, d, d), √w (B, K), or None for unit weights."""
-    return whitening(*masked_weighting(term))
+    """U with UᵀU = Ω per instance (B, K, d, d), √w (B, K), or None for unit weights.
+
+    The factor of a term's information matrices is computed once and reused while the
+    tensors are unchanged (same objects, no in-place edit) and need no gradient: a solve
+    linearizes the same term every iteration."""
+    tensors = (term.weight, term.information, term.valid)
+    differentiable = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in tensors
+    )
+    versions = tuple(t._version if t is not None else None for t in tensors)
+    cached = getattr(term, "_whitening_cache", None)
+    if (
+        not differentiable
+        and cached is not None
+        and all(a is b for a, b in zip(cached[0], tensors, strict=True))
+        and cached[1] == versions
+    ):
+        return cached[2]
+    factor = whitening(*masked_weighting(term))
+    if not differentiable and not torch._C._functorch.is_functorch_wrapped_tensor(term.valid):
+        # The cache holds the tensors themselves: an identity test cannot match a new one.
+        term._whitening_cache = (tensors, versions, factor)
+    return factor
 
 
 def term_squared_norms(term: Term, r: Tensor) -> Tensor:
