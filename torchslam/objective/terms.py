@@ -75,6 +75,8 @@ __all__ = [
     "Term",
     "bind_terms",
     "point_observation_jacobians",
+    "pose_prior_residual",
+    "relative_pose_residual",
     "term_blocks",
     "term_cost",
     "term_jacobians",
@@ -687,6 +689,19 @@ def _check_one_pose_index(fn: str, pose_index: object) -> None:
         )
 
 
+def relative_pose_residual(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
+    """r = Log(Z_ij⁻¹ · T_i · T_j⁻¹), ξ = (ω, v), for world → frame poses T_i, T_j (…, 4, 4)
+    and Z_ij ≈ T_i T_j⁻¹ → (…, 6): the one relative-pose residual (the pose graph's
+    Log(Z_ij⁻¹ T_i^g⁻¹ T_j^g) on body → world vertices T^g = T⁻¹ is the same expression)."""
+    return se3.log(se3.inverse(Z_ij) @ T_i @ se3.inverse(T_j))
+
+
+def pose_prior_residual(T: Tensor, Z: Tensor) -> Tensor:
+    """r = Log(Z⁻¹ · T), ξ = (ω, v), zero when T = Z; poses (…, 4, 4) in either convention
+    (as long as Z is in the same one) → (…, 6)."""
+    return se3.log(se3.inverse(Z) @ T)
+
+
 class RelativePoseTerm(Term):
     """Relative-pose (between) terms r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹), ξ = (ω, v).
 
@@ -739,8 +754,7 @@ class RelativePoseTerm(Term):
         )
 
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
-        T_i, T_j = poses[..., 0, :, :], poses[..., 1, :, :]
-        return se3.log(se3.inverse(measurements) @ T_i @ se3.inverse(T_j))
+        return relative_pose_residual(poses[..., 0, :, :], poses[..., 1, :, :], measurements)
 
     def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
         r = self.residual(poses, measurements)
@@ -783,7 +797,7 @@ class PosePriorTerm(Term):
         )
 
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
-        return se3.log(se3.inverse(measurements) @ poses[..., 0, :, :])
+        return pose_prior_residual(poses[..., 0, :, :], measurements)
 
     def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
         r = self.residual(poses, measurements)

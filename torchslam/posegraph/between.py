@@ -49,6 +49,7 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.manifold import right_jacobian_jacrev
+from torchslam.objective.terms import pose_prior_residual, relative_pose_residual
 
 __all__ = [
     "between_jacobians",
@@ -73,13 +74,14 @@ def _check_poses(fn: str, **poses: Tensor) -> None:
 
 
 def _between(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
+    # The solver's relative-pose residual on the frame poses T⁻¹ (the same expression).
     with _checks.validation(False):
-        return se3.log(se3.inverse(Z_ij) @ (se3.inverse(T_i) @ T_j))
+        return relative_pose_residual(se3.inverse(T_i), se3.inverse(T_j), Z_ij)
 
 
 def _prior(T: Tensor, Z: Tensor) -> Tensor:
     with _checks.validation(False):
-        return se3.log(se3.inverse(Z) @ T)
+        return pose_prior_residual(T, Z)
 
 
 def between_residual(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:

@@ -1,4 +1,6 @@
-"""The hand-written damped Gauss-Newton / Levenberg-Marquardt solver (see :mod:`.solve`)."""
+"""The hand-written damped Gauss-Newton / Levenberg-Marquardt solver: entry points (:mod:`.solve`),
+the one loop (:mod:`.loop`), linearization (:mod:`.linearize`) and the planned linear solve
+(:mod:`.plan`, :mod:`.sparse`)."""
 
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.differentiable import ImplicitConfig, solve_differentiable

@@ -98,6 +98,7 @@ from torch import Tensor
 
 from torchslam import _checks, losses
 from torchslam.lie import se3
+from torchslam.manifold import SE3Matrix
 from torchslam.objective.data import PointMapData, cost, cost_from_poses
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_implicit_config
@@ -113,6 +114,8 @@ _BACKWARDS = ("implicit", "unrolled", "truncated", "none")
 OnUnconverged = Literal["warn", "unroll", "raise", "implicit"]
 _ON_UNCONVERGED = ("warn", "unroll", "raise", "implicit")
 _HESSIANS = ("exact", "gauss_newton")
+# The chart x* ⊞ δ of the implicit backward on the pose matrices: T·Exp(δ).
+_MATRIX = SE3Matrix()
 
 
 @dataclass(frozen=True)
@@ -453,7 +456,7 @@ class _ImplicitSolution(torch.autograd.Function):
                 T = torch.where(
                     data0.fixed_poses[..., None, None],
                     se3.exp(xi0_leaf, form="fast"),
-                    se3.exp(xi_star, form="fast") @ se3.exp(dp, form="fast"),
+                    _MATRIX.plus(se3.exp(xi_star, form="fast"), dp),
                 )
             X = torch.where(data0.fixed_points[..., None], X0_leaf, X_star + dl)
             F = cost_from_poses(T, X, data).sum()

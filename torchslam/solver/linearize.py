@@ -22,7 +22,7 @@ blocks factor as J_ξ = J_X · G_j with J_X = −R_i and G_j = [ −[X_j]× | I 
     G_jᵀ G_j = [[ |X|² I − X Xᵀ, [X]× ], [ −[X]×, I ]],
 
 so every block is a weighted sum of the 10 monomials (1, x, y, z, x², y², z², xy, xz, yz) of
-X_j. The Schur complement then needs no per-pair products at all (see :mod:`.linear`).
+X_j. The Schur complement then needs no per-pair products at all (see :mod:`.plan`).
 
 **Terms** (:mod:`torchslam.terms`: relative poses, priors, point observations, user terms).
 Instance k of a term touches poses i_1 … i_a and, for a term with ``point_index``, one point
@@ -31,7 +31,7 @@ formed by the same routine as the point observations' blocks (:func:`instance_bl
 adds J̃_aᵀr̃ to g_(i_a) and J̃_aᵀJ̃_a to U_(i_a) (folded into ``pose_blocks`` and
 ``pose_gradient`` of either form, so damping and Schur see the whole pose Hessian), the
 off-diagonal products J̃_aᵀJ̃_b (a ≠ b) to block (i_a, i_b) of the reduced pose system, kept
-as :class:`TermLinearization` ``pair_blocks`` (:mod:`.linear` adds them to S, dense or
+as :class:`TermLinearization` ``pair_blocks`` (:mod:`.plan` adds them to S, dense or
 sparse), and for a point J̃_XᵀJ̃_X to V_j, J̃_Xᵀr̃ to g_j and one coupling block
 W = J̃_aᵀJ̃_X per (pose, point) pair, appended to ``coupling`` in the order of
 :func:`coupling_edges`. A term that touches points needs the block form.
