@@ -49,7 +49,7 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.manifold import right_jacobian_jacrev
-from torchslam.objective.terms import pose_prior_residual, relative_pose_residual
+from torchslam.objective.terms import pose_prior_residual
 
 __all__ = [
     "between_jacobians",
@@ -74,9 +74,10 @@ def _check_poses(fn: str, **poses: Tensor) -> None:
 
 
 def _between(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
-    # The solver's relative-pose residual on the frame poses T⁻¹ (the same expression).
+    # The solver's pose error Log(Z⁻¹·E) (objective.terms.pose_prior_residual) of the
+    # relative pose E = T_i⁻¹ T_j of the vertices (the terms' T_i0 T_j0⁻¹).
     with _checks.validation(False):
-        return relative_pose_residual(se3.inverse(T_i), se3.inverse(T_j), Z_ij)
+        return pose_prior_residual(se3.inverse(T_i) @ T_j, Z_ij)
 
 
 def _prior(T: Tensor, Z: Tensor) -> Tensor:
