@@ -686,3 +686,22 @@ def check_index_pairs(fn: str, pairs: object, m: int) -> list[tuple[int, int]]:
             )
         checked.append((i, k))
     return checked
+
+
+# ---- sequences of objects -------------------------------------------------------------------
+
+
+def check_sequence(
+    fn: str, name: str, values: object, kind: type, what: str, item: str | None = None
+) -> tuple:
+    """``values`` as a tuple, after checking it is a list or tuple (of ``what``) whose items
+    are ``kind`` (each ``item``, default ``what``); TypeError naming ``fn`` and the argument or
+    item."""
+    if not isinstance(values, (list, tuple)):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be a list or tuple of {what}, got {describe(values)}"
+        )
+    for k, value in enumerate(values):
+        if not isinstance(value, kind):
+            raise TypeError(f"{fn}: {name}[{k}] must be {item or what}, got {describe(value)}")
+    return tuple(values)

@@ -643,14 +643,18 @@ def right_jacobian_jacrev(
     name = "right_jacobian_jacrev"
     if not callable(fn):
         raise TypeError(f"{name}: argument 'fn' must be callable, got {_checks.describe(fn)}")
-    poses = _as_tensor_tuple(name, "poses", poses)
-    euclidean = _as_tensor_tuple(name, "euclidean", euclidean)
+    poses = _checks.check_sequence(name, "poses", poses, Tensor, "tensors")
+    euclidean = _checks.check_sequence(name, "euclidean", euclidean, Tensor, "tensors")
     keyword = isinstance(constants, Mapping)
     constant_names = tuple(constants) if keyword else ()
     if keyword and not all(isinstance(k, str) for k in constant_names):
         raise TypeError(f"{name}: the keys of argument 'constants' must be str")
-    constant_values = _as_tensor_tuple(
-        name, "constants", tuple(constants.values()) if keyword else constants
+    constant_values = _checks.check_sequence(
+        name,
+        "constants",
+        tuple(constants.values()) if keyword else constants,
+        Tensor,
+        "tensors",
     )
     if not poses and not euclidean:
         raise ValueError(
@@ -718,21 +722,6 @@ def right_jacobian_jacrev(
         return tuple(J.new_zeros(*batch, *J.shape) for J in (*J_delta, *J_vector))
     J_delta, J_vector = torch.func.vmap(jacobian)(deltas, vectors, Ts, cs)
     return tuple(J.reshape(*batch, *J.shape[1:]) for J in (*J_delta, *J_vector))
-
-
-def _as_tensor_tuple(fn: str, name: str, values: object) -> tuple[Tensor, ...]:
-    if isinstance(values, Tensor) or not isinstance(values, Sequence):
-        raise TypeError(
-            f"{fn}: argument '{name}' must be a tuple or list of tensors, got "
-            f"{_checks.describe(values)}"
-        )
-    for k, value in enumerate(values):
-        if not isinstance(value, Tensor):
-            raise TypeError(
-                f"{fn}: argument '{name}[{k}]' must be a torch.Tensor, got "
-                f"{_checks.describe(value)}"
-            )
-    return tuple(values)
 
 
 def _identity(batch: Sequence[int], like: Tensor) -> Tensor:

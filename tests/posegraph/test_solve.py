@@ -78,6 +78,16 @@ def right_gradient(graph: PoseGraph, poses: torch.Tensor) -> torch.Tensor:
     return delta.grad
 
 
+def free_hessian(graph: PoseGraph, poses: torch.Tensor) -> torch.Tensor:
+    """∂²F(T_i·Exp(δ_i))/∂δ² at δ = 0 over the free vertices (vertex 0 fixed), by autograd
+    through objectives.standard_cost, (6(N − 1), 6(N − 1))."""
+    H = torch.autograd.functional.hessian(
+        lambda d: objectives.standard_cost(graph, poses @ se3.exp(d.reshape(-1, 6))),
+        torch.zeros(6 * graph.num_vertices, dtype=poses.dtype),
+    )
+    return H[6:, 6:]
+
+
 @pytest.fixture
 def ring(generator):
     return ring_graph(generator)
@@ -107,10 +117,7 @@ def test_lm_reaches_the_optimum(ring, linear_solver):
     # by the measured decrease instead.
     initial_gradient = right_gradient(graph, graph.poses)[1:].abs().max()
     gradient = right_gradient(graph, result.poses)[1:].abs().max()
-    H = torch.autograd.functional.hessian(
-        lambda d: objectives.standard_cost(graph, result.poses @ se3.exp(d.reshape(-1, 6))),
-        torch.zeros(6 * graph.num_vertices, dtype=result.poses.dtype),
-    )[6:, 6:]
+    H = free_hessian(graph, result.poses)
     floor = math.sqrt(
         2 * TIGHT["function_tolerance"] * result.final_cost * float(torch.linalg.eigvalsh(H).max())
     )
@@ -132,10 +139,7 @@ def test_sparse_and_dense_paths_agree(ring):
     # function_tolerance·F (round-off of the cost hides the rest), i.e. within
     # √(2·ftol·F / λ_min(H)) of the optimum in the vertices' chart; the two solutions are
     # within twice that (×4 for a last step stopped by the measured decrease instead).
-    H = torch.autograd.functional.hessian(
-        lambda d: objectives.standard_cost(graph, dense.poses @ se3.exp(d.reshape(-1, 6))),
-        torch.zeros(6 * graph.num_vertices, dtype=dense.poses.dtype),
-    )[6:, 6:]
+    H = free_hessian(graph, dense.poses)
     radius = math.sqrt(
         2 * TIGHT["function_tolerance"] * dense.final_cost / float(torch.linalg.eigvalsh(H).min())
     )

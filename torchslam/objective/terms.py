@@ -458,17 +458,14 @@ def bind_terms(
     after checking that ``terms`` is a list or tuple of :class:`Term` (errors name ``fn``)."""
     if terms is None:
         return ()
-    if isinstance(terms, Term) or not isinstance(terms, (list, tuple)):
-        raise TypeError(
-            f"{fn}: argument 'terms' must be a list or tuple of torchslam.Term objects, "
-            f"got {type(terms).__name__}"
-        )
-    for k, term in enumerate(terms):
-        if not isinstance(term, Term):
-            raise TypeError(
-                f"{fn}: terms[{k}] must be a torchslam.Term (e.g. RelativePoseTerm), "
-                f"got {type(term).__name__}"
-            )
+    terms = _checks.check_sequence(
+        fn,
+        "terms",
+        terms,
+        Term,
+        "torchslam.Term objects",
+        "a torchslam.Term (e.g. RelativePoseTerm)",
+    )
     return tuple(term.bind(B, m, like, n) for term in terms)
 
 

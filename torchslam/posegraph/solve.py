@@ -294,14 +294,16 @@ def _check_inputs(
         )
 
 
-def _sqrt_information(graph: PoseGraph, priors: PosePriors | None) -> Tensor:
-    """U with UᵀU = Ω for the edges and then the priors, (E + P, 6, 6); ValueError naming the
-    first edge or prior whose information is not positive definite (when validation is on)."""
+def _check_information(graph: PoseGraph, priors: PosePriors | None) -> None:
+    """ValueError naming the first edge or prior whose information is not positive definite
+    (when validation is on); the terms whiten with the same matrices."""
     information = graph.information.detach()
     if priors is not None:
         information = torch.cat((information, priors.information.detach()))
-    L, info = torch.linalg.cholesky_ex(information)
-    if _checks.value_checks_active() and information.numel() > 0 and bool((info > 0).any()):
+    if not _checks.value_checks_active() or information.numel() == 0:
+        return
+    info = torch.linalg.cholesky_ex(information)[1]
+    if bool((info > 0).any()):
         k = int((info > 0).nonzero()[0, 0])
         where = (
             f"'graph.information' of edge {k}"
@@ -312,7 +314,6 @@ def _sqrt_information(graph: PoseGraph, priors: PosePriors | None) -> Tensor:
             f"solve_pose_graph: the information matrices must be symmetric positive definite "
             f"(Cholesky factorization); {where} is not (a singular or indefinite matrix)"
         )
-    return L.transpose(-1, -2)
 
 
 def _solver_config(config: PoseGraphSolverConfig | SolverConfig) -> SolverConfig:
@@ -424,7 +425,7 @@ def solve_pose_graph(
     _check_inputs(graph, poses, priors, fixed, config, callback)
     start = time.perf_counter()
     with torch.no_grad():
-        _sqrt_information(graph, priors)  # raises on a non-SPD matrix
+        _check_information(graph, priors)
     solver_config = _solver_config(config)
     if isinstance(config, PoseGraphSolverConfig) and config.linear_solver == "auto":
         # The pose-graph rule: dense up to dense_max_variables free unknowns, else sparse

@@ -291,8 +291,8 @@ class _StructuredElimination:
         B, _, n = self.shape
         dp_e = dp.reshape(-1, 6)[self.pose_slot]
         G_dp = torch.linalg.cross(dp_e[:, :3], self.X_e, dim=-1) + dp_e[:, 3:]
-        acc = (self.weight[:, None] * G_dp).new_zeros(B * n, 3)
-        return acc.index_add(0, self.point_slot, self.weight[:, None] * G_dp).reshape(B, n, 3)
+        w_G_dp = self.weight[:, None] * G_dp
+        return w_G_dp.new_zeros(B * n, 3).index_add(0, self.point_slot, w_G_dp).reshape(B, n, 3)
 
 
 @dataclass
