@@ -27,5 +27,8 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
         and not torch._C._functorch.is_functorch_wrapped_tensor(a)
         and not torch._C._functorch.is_functorch_wrapped_tensor(b)
     ):
-        return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
+        # A transposed view makes NumPy take its slow strided loop: copy it first (cheaper).
+        return torch.from_numpy(
+            np.matmul(np.ascontiguousarray(a.numpy()), np.ascontiguousarray(b.numpy()))
+        )
     return a @ b

@@ -76,6 +76,7 @@ __all__ = [
     "bind_terms",
     "point_observation_jacobians",
     "pose_prior_residual",
+    "relative_pose_jacobians",
     "relative_pose_residual",
     "term_blocks",
     "term_cost",
@@ -686,11 +687,35 @@ def _check_one_pose_index(fn: str, pose_index: object) -> None:
         )
 
 
-def relative_pose_residual(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
-    """r = Log(Z_ij⁻¹ · T_i · T_j⁻¹), ξ = (ω, v), for world → frame poses T_i, T_j (…, 4, 4)
-    and Z_ij ≈ T_i T_j⁻¹ → (…, 6): the one relative-pose residual (the pose graph's
-    Log(Z_ij⁻¹ T_i^g⁻¹ T_j^g) on body → world vertices T^g = T⁻¹ is the same expression)."""
+def relative_pose_residual(
+    T_i: Tensor, T_j: Tensor, Z_ij: Tensor, convention: str = "world_to_frame"
+) -> Tensor:
+    """The one relative-pose residual, ξ = (ω, v), poses (…, 4, 4) → (…, 6):
+
+    - ``convention="world_to_frame"`` (T_i = T_i0, the solver's poses): r = Log(Z_ij⁻¹ T_i T_j⁻¹),
+      Z_ij ≈ T_i T_j⁻¹ (the pose of frame j in frame i);
+    - ``"frame_to_world"`` (g2o's body → world vertices): r = Log(Z_ij⁻¹ T_i⁻¹ T_j),
+      Z_ij ≈ T_i⁻¹ T_j. With T = T0⁻¹ both are the same number.
+    """
+    if convention == "frame_to_world":
+        return se3.log(se3.inverse(Z_ij) @ (se3.inverse(T_i) @ T_j))
     return se3.log(se3.inverse(Z_ij) @ T_i @ se3.inverse(T_j))
+
+
+def relative_pose_jacobians(
+    T_i: Tensor, T_j: Tensor, Z_ij: Tensor, convention: str = "world_to_frame"
+) -> tuple[Tensor, Tensor, Tensor]:
+    """(r, ∂r/∂δ_i, ∂r/∂δ_j) of :func:`relative_pose_residual` for right perturbations
+    T ← T·Exp(δ), shapes (…, 6), (…, 6, 6), (…, 6, 6); the derivation is in
+    :class:`RelativePoseTerm`."""
+    r = relative_pose_residual(T_i, T_j, Z_ij, convention)
+    Jr_inv = se3.jr_inv(r, form="fast")
+    if convention == "frame_to_world":
+        # E = Z⁻¹ T_i⁻¹ T_j: ∂r/∂δ_j = Jr⁻¹(r), ∂r/∂δ_i = −Jr⁻¹(r)·Ad(T_j⁻¹ T_i).
+        J_i = -matmul(Jr_inv, se3.adjoint(se3.inverse(T_j) @ T_i))
+        return r, J_i, Jr_inv
+    J_i = matmul(Jr_inv, se3.adjoint(T_j))
+    return r, J_i, -J_i
 
 
 def pose_prior_residual(T: Tensor, Z: Tensor) -> Tensor:
@@ -716,11 +741,21 @@ class RelativePoseTerm(Term):
     - T_j ← T_j Exp(δ_j): T_j⁻¹ ← Exp(−δ_j) T_j⁻¹, E ← E · Exp(−Ad(T_j) δ_j), so
       ∂r/∂δ_j = −Jr⁻¹(r) · Ad(T_j).
 
+    With ``convention="frame_to_world"`` the poses the solver holds are the body → world
+    vertices themselves (as g2o, GTSAM and :func:`torchslam.posegraph.solve_pose_graph`
+    keep them, so the right perturbation moves the vertex): r = Log(Z_ij⁻¹ T_i⁻¹ T_j) with
+    Z_ij ≈ T_i⁻¹ T_j, ∂r/∂δ_j = Jr⁻¹(r) and, through T_i⁻¹ ← Exp(−δ_i) T_i⁻¹ and
+    A = T_j⁻¹ T_i, ∂r/∂δ_i = −Jr⁻¹(r) · Ad(T_j⁻¹ T_i). A
+    :class:`torchslam.PointMapProblem`'s point observations need T_i0, the default.
+
     Args:
         pose_index: (i, j) of each term, integer (K, 2) or (B, K, 2).
-        measurements: Z_ij ≈ T_i0 T_j0⁻¹, (K, 4, 4) or (B, K, 4, 4).
+        measurements: Z_ij ≈ T_i0 T_j0⁻¹ (or T_i⁻¹ T_j, frame_to_world), (K, 4, 4) or
+            (B, K, 4, 4).
         information: Ω_ij in (ω, v) order, (…, K, 6, 6); or ``weight`` (…, K); default 1.
         loss, valid: as :class:`Term`.
+        convention: which pose the solver's poses are: ``"world_to_frame"`` (T_i0, default)
+            or ``"frame_to_world"``.
     """
 
     def __init__(
@@ -732,8 +767,15 @@ class RelativePoseTerm(Term):
         weight: Tensor | None = None,
         loss: object | None = None,
         valid: Tensor | None = None,
+        convention: str = "world_to_frame",
     ) -> None:
         fn = "RelativePoseTerm"
+        if convention not in ("world_to_frame", "frame_to_world"):
+            raise ValueError(
+                f"{fn}: argument 'convention' must be 'world_to_frame' or 'frame_to_world', "
+                f"got {convention!r}"
+            )
+        self.convention = convention
         if isinstance(pose_index, Tensor) and pose_index.shape[-1:] != (2,):
             raise ValueError(
                 f"{fn}: argument 'pose_index' must have shape (K, 2) or (B, K, 2), "
@@ -751,14 +793,15 @@ class RelativePoseTerm(Term):
         )
 
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
-        return relative_pose_residual(poses[..., 0, :, :], poses[..., 1, :, :], measurements)
+        return relative_pose_residual(
+            poses[..., 0, :, :], poses[..., 1, :, :], measurements, self.convention
+        )
 
     def jacobians(self, poses: Tensor, measurements: Tensor) -> tuple[Tensor, Tensor]:
-        r = self.residual(poses, measurements)
-        J_i = matmul(
-            se3.jr_inv(r, form="fast"), se3.adjoint(poses[..., 1, :, :])
-        )  # Jr⁻¹(r) = Jl⁻¹(−r)
-        return r, torch.stack((J_i, -J_i), dim=-2)
+        r, J_i, J_j = relative_pose_jacobians(
+            poses[..., 0, :, :], poses[..., 1, :, :], measurements, self.convention
+        )
+        return r, torch.stack((J_i, J_j), dim=-2)
 
 
 class PosePriorTerm(Term):

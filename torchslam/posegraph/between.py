@@ -49,7 +49,11 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.manifold import right_jacobian_jacrev
-from torchslam.objective.terms import pose_prior_residual
+from torchslam.objective.terms import (
+    pose_prior_residual,
+    relative_pose_jacobians,
+    relative_pose_residual,
+)
 
 __all__ = [
     "between_jacobians",
@@ -74,10 +78,9 @@ def _check_poses(fn: str, **poses: Tensor) -> None:
 
 
 def _between(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> Tensor:
-    # The solver's pose error Log(Z⁻¹·E) (objective.terms.pose_prior_residual) of the
-    # relative pose E = T_i⁻¹ T_j of the vertices (the terms' T_i0 T_j0⁻¹).
+    # The one relative-pose residual on body → world vertices (objective.terms).
     with _checks.validation(False):
-        return pose_prior_residual(se3.inverse(T_i) @ T_j, Z_ij)
+        return relative_pose_residual(T_i, T_j, Z_ij, "frame_to_world")
 
 
 def _prior(T: Tensor, Z: Tensor) -> Tensor:
@@ -119,11 +122,8 @@ def between_jacobians(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> tuple[Tensor, T
         ``(r, J_r_delta_i, J_r_delta_j)`` of shapes (..., 6), (..., 6, 6), (..., 6, 6).
     """
     _check_poses("between_jacobians", T_i=T_i, T_j=T_j, Z_ij=Z_ij)
-    r = _between(T_i, T_j, Z_ij)
     with _checks.validation(False):
-        J_r_delta_j = se3.jr_inv(r, form="fast")
-        J_r_delta_i = -J_r_delta_j @ se3.adjoint(se3.inverse(T_j) @ T_i)
-    return r, J_r_delta_i, J_r_delta_j
+        return relative_pose_jacobians(T_i, T_j, Z_ij, "frame_to_world")
 
 
 def between_jacobians_jacrev(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> tuple[Tensor, Tensor]:

@@ -10,13 +10,13 @@ Problem. Over the free vertex poses T_i (body i → world), minimize the standar
 poses (default: the file's ``FIX`` vertices, or vertex 0 when it fixes none).
 
 :func:`solve_pose_graph` turns the graph into the solver's objective (:func:`graph_data`: one
-problem whose poses are T_i0 = T_i⁻¹, the edges a :class:`torchslam.RelativePoseTerm`, the
-priors a :class:`torchslam.PosePriorTerm`) and runs :func:`torchslam.solver.loop.run` on it:
+problem whose poses are the vertices T_i, the edges a :class:`torchslam.RelativePoseTerm` with
+``convention="frame_to_world"``, the priors a :class:`torchslam.PosePriorTerm`) and runs
+:func:`torchslam.solver.loop.run` on it:
 the same Levenberg-Marquardt, stopping rules (:func:`torchslam.solver.loop.update_status`)
 and planned linear solve (:class:`torchslam.solver.plan.LinearPlan`: the reduced system is
 the whole pose system here, factored densely or by SuperLU in a fill-reducing order) as every
-other solve. The solver's retraction T_i0 ← T_i0·Exp(δ) is T_i ← Exp(−δ)·T_i on the vertices;
-the optimum is the same.
+other solve, with the solver's retraction T_i ← T_i·Exp(δ) on the vertices (as g2o and GTSAM).
 
 :class:`PoseGraphSolverConfig` keeps the defaults that suit pose graphs (λ₀ = 1e-9: the gauge
 is fixed, so Gauss-Newton steps are taken from the start); ``linear_solver`` there names the
@@ -40,7 +40,7 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.objective.data import PointMapData
-from torchslam.objective.terms import PosePriorTerm
+from torchslam.objective.terms import PosePriorTerm, RelativePoseTerm
 from torchslam.posegraph.graph import PoseGraph, check_information, check_vertex_indices
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_int, check_number
@@ -341,28 +341,24 @@ def _solver_config(config: PoseGraphSolverConfig | SolverConfig) -> SolverConfig
 def graph_data(
     graph: PoseGraph, priors: PosePriors | None = None, fixed: Tensor | None = None
 ) -> PointMapData:
-    """The graph as the solver's objective: B = 1 problem, m = N poses T_i0 = T_i⁻¹, no points,
-    the edges as one :class:`torchslam.RelativePoseTerm` (:meth:`PoseGraph.relative_pose_term`:
-    the same residual Log(Z_ij⁻¹ T_i⁻¹ T_j)) and the priors as a
-    :class:`torchslam.PosePriorTerm`, the vertices ``fixed`` (F,) held.
-
-    A prior r_p = Log(Z_p⁻¹ T_k) becomes the term residual r' = Log(Z_p T_k0) (measurement
-    Z_p⁻¹) =
-    −Ad(Z_p)·r_p (T_k0 = T_k⁻¹) with information Ad(Z_p)⁻ᵀ Ω_p Ad(Z_p)⁻¹: the same cost
-    r_pᵀ Ω_p r_p, hence the same optimum and Gauss-Newton steps.
+    """The graph as the solver's objective: B = 1 problem whose m = N poses are the body →
+    world vertices T_i themselves (so the loop's right perturbation T_i·Exp(δ) is the one
+    g2o and GTSAM use), no points, the edges as one :class:`torchslam.RelativePoseTerm`
+    with ``convention="frame_to_world"`` (r = Log(Z_ij⁻¹ T_i⁻¹ T_j)) and the priors as a
+    :class:`torchslam.PosePriorTerm` (r_p = Log(Z_p⁻¹ T_k)), the vertices ``fixed`` (F,)
+    held.
     """
     N = graph.num_vertices
-    terms = [graph.relative_pose_term()]
-    if priors is not None and priors.num_priors:
-        Ad_inv = se3.adjoint(se3.inverse(priors.poses))
-        information = Ad_inv.transpose(-1, -2) @ priors.information @ Ad_inv
-        terms.append(
-            PosePriorTerm(
-                priors.indices,
-                se3.inverse(priors.poses),
-                information=0.5 * (information + information.transpose(-1, -2)),
-            )
+    terms = [
+        RelativePoseTerm(
+            graph.edges,
+            graph.measurements,
+            information=graph.information,
+            convention="frame_to_world",
         )
+    ]
+    if priors is not None and priors.num_priors:
+        terms.append(PosePriorTerm(priors.indices, priors.poses, information=priors.information))
     fixed_poses = torch.zeros(1, N, dtype=torch.bool, device=graph.poses.device)
     if fixed is not None:
         fixed_poses[0, fixed] = True
@@ -436,7 +432,7 @@ def solve_pose_graph(
     with torch.no_grad(), _checks.validation(False):
         T = poses.detach()
         data = graph_data(graph, priors, fixed)
-        xi = se3.log(se3.inverse(T))[None]
+        xi = se3.log(T)[None]
         plan = LinearPlan.build(data, solver_config)
 
         def report(state: loop.State) -> None:
@@ -458,14 +454,11 @@ def solve_pose_graph(
             xi, xi.new_zeros(1, 0, 3), data, solver_config, report, False, plan=plan
         )
         solved = loop.result(state, history, start)
-        optimized = se3.inverse(se3.exp(solved.pose_tangent[0]))
+        optimized = se3.exp(solved.pose_tangent[0])
         # The gauge vertices keep their poses bit for bit (no Log∘Exp round trip).
         optimized = torch.where(data.fixed_poses[0][:, None, None], T, optimized)
-        # The gradient in the vertices' right chart T_i ← T_i·Exp(δ_R): the loop's δ moves
-        # T_i0 = T_i⁻¹ to T_i0·Exp(δ), i.e. δ_R = −Ad(T_i⁻¹)·δ, so g_R = −Ad(T_i)ᵀ g.
         g = state.lin.pose_gradient[0]
-        g_right = -(se3.adjoint(optimized).transpose(-1, -2) @ g[..., None])[..., 0]
-        gradient_norm = float(g_right.abs().max()) if g_right.numel() else 0.0
+        gradient_norm = float(g.abs().max()) if g.numel() else 0.0
     return PoseGraphSolveResult(
         poses=optimized,
         status=solved.status[0],

@@ -202,8 +202,11 @@ class DenseReduced:
         full = A + torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
         return full.transpose(2, 3).reshape(B, 6 * m, 6 * m)
 
-    def factor(self, upper: Tensor, dense: Tensor | None = None) -> _DenseCholesky:
-        """Factor S = (matrix of ``upper``) + ``dense`` (an optional (B, 6m, 6m) part)."""
+    def factor(
+        self, upper: Tensor, dense: Tensor | None = None, definite: bool = False
+    ) -> _DenseCholesky:
+        """Factor S = (matrix of ``upper``) + ``dense`` (an optional (B, 6m, 6m) part);
+        Cholesky reports a failure at no extra cost, so ``definite`` is not needed."""
         S = self.matrix(upper)
         return _DenseCholesky.of(S if dense is None else S + dense)
 
@@ -229,10 +232,15 @@ class SparseReduced:
         """Pattern slot of each upper block key (every key must be in the pattern)."""
         return torch.searchsorted(self.pattern.keys, keys)
 
-    def factor(self, upper: Tensor, dense: Tensor | None = None) -> SparseFactor:
+    def factor(
+        self, upper: Tensor, dense: Tensor | None = None, definite: bool = False
+    ) -> SparseFactor:
+        """Factor S (``upper``); ``definite``: S is positive definite in exact arithmetic (a
+        damped system), so the O(nnz) sign check of the factor's D is skipped
+        (:meth:`BlockPattern.factor`)."""
         if dense is not None:
             raise ValueError("SparseReduced.factor: a dense part has no place in the pattern")
-        return self.pattern.factor(upper)
+        return self.pattern.factor(upper, check_sign=not definite)
 
 
 # ------------------------------------------------------------------------------------------
@@ -424,6 +432,8 @@ class LinearPlan:
                 )
             return self._factorize_full(lin, lam)
         B, m, n = self.shape
+        # Damped (λ > 0): JᵀJ + λD is positive definite, so is its Schur complement S.
+        definite = self.sparse and bool((lam > 0).all())
         U = damp(lin.pose_blocks, lam, self.damping)
         upper = U.new_zeros(self.reduced.num_slots, 6, 6)
         upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
@@ -457,7 +467,8 @@ class LinearPlan:
                 upper = upper + blocks_from_monomials(sums)
             elif not self.sparse and n > 0:
                 dense = -self._monomial_products(lin, v_d)
-            return Factorization(self.reduced.factor(upper, dense), elim, None, self.shape)
+            factor = self.reduced.factor(upper, dense, definite)
+            return Factorization(factor, elim, None, self.shape)
         V = damp(lin.point_blocks, lam, self.damping)
         # V⁻¹ through Cholesky of each 3×3 block (a failure marks the whole problem).
         LV, info = torch.linalg.cholesky_ex(V)
@@ -476,7 +487,7 @@ class LinearPlan:
                 mirror = pairs.same_pose[sl] & ~pairs.self_pair[sl]
                 prod = torch.where(mirror[:, None, None], prod + prod.transpose(-1, -2), prod)
                 upper = upper.index_add(0, slots[sl], -prod)
-        return Factorization(self.reduced.factor(upper), elim, point_ok, self.shape)
+        return Factorization(self.reduced.factor(upper, None, definite), elim, point_ok, self.shape)
 
     def _pairs(self) -> PairStructure:
         if self.pairs is None:
