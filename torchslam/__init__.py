@@ -5,21 +5,9 @@ T ← T·Exp(δ); T_i0 maps world (frame 0) points into frame i; Hamilton quater
 float64 by default.
 """
 
-from torchslam import (
-    alignment,
-    data,
-    icp,  # deprecated alias of registration.icp (a shim module)
-    initialization,
-    io,
-    jacobians,
-    losses,
-    manifold,
-    metrics,
-    posegraph,
-    registration,
-    terms,
-    tracks,  # deprecated alias of registration.tracks (a shim module)
-)
+import importlib as _importlib
+
+from torchslam import losses
 from torchslam._checks import validation
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
@@ -38,6 +26,34 @@ from torchslam.solver import (
 )
 
 __version__ = "0.1.0"
+
+# Subpackages imported on first use (PEP 562), so that ``import torchslam`` costs little beyond
+# ``import torch``: ``torchslam.posegraph`` and the like work as attributes all the same.
+_LAZY = (
+    "alignment",
+    "data",
+    "icp",  # deprecated alias of registration.icp (a shim module)
+    "initialization",
+    "io",
+    "jacobians",
+    "manifold",
+    "metrics",
+    "posegraph",
+    "registration",
+    "terms",
+    "tracks",  # deprecated alias of registration.tracks (a shim module)
+)
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        return _importlib.import_module(f"torchslam.{name}")
+    raise AttributeError(f"module 'torchslam' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "CauchyLoss",

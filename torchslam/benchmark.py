@@ -28,7 +28,7 @@ import torchslam as ts
 from torchslam import _deprecated
 from torchslam.lie import se3
 
-REPEATS = {"S": 20, "M": 10, "L": 3, "O": 5, "BATCH": 5}
+REPEATS = {"S": 20, "M": 10, "L": 3, "O": 5, "BATCH": 5, "TRAIN": 5}
 TARGETS_S = {"S": 0.020, "M": 0.1, "L": 1.0, "BATCH": 0.3}
 # Reference timings quoted in the issue for this machine (seconds).
 REFERENCE = {
@@ -38,7 +38,7 @@ REFERENCE = {
 
 
 def build(case: str):
-    scene = ts.data.benchmark_case(case, seed=0)
+    scene = ts.data.benchmark_case("BATCH" if case == "TRAIN" else case, seed=0)
     init = ts.initialization.initialize_scene(
         scene, method="odometry", rotation_noise_deg=1.0, translation_noise=0.02, seed=1
     )
@@ -77,14 +77,22 @@ def schur_flops(B: int, m: int, n: int, E: int) -> dict[str, float]:
 
 
 def run_case(case: str, repeats: int, rate: float, with_scipy: bool) -> dict:
+    """One case: the whole solve (problem construction included), median over ``repeats``
+    after a warm-up run. Case TRAIN is a training step on the BATCH problems
+    (:func:`training_step`): the forward solve plus the implicit backward to the
+    observations."""
     scene, init, loss = build(case)
     B, m, n = scene.batch_size, scene.num_poses, scene.num_points
     E = int(scene.valid.sum())
-    times, result = [], None
+    times, result, backward = [], None, []
     for _ in range(repeats + 1):  # first run warms up
-        problem = ts.PointMapProblem.from_scene(scene, init.poses, init.points, loss=loss)
         t = time.perf_counter()
-        result = ts.solve(problem)
+        if case == "TRAIN":
+            result, backward_s = training_step(scene, init)
+            backward.append(backward_s)
+        else:
+            problem = ts.PointMapProblem.from_scene(scene, init.poses, init.points, loss=loss)
+            result = ts.solve(problem)
         times.append(time.perf_counter() - t)
     times = times[1:]
     median = statistics.median(times)
@@ -115,10 +123,43 @@ def run_case(case: str, repeats: int, rate: float, with_scipy: bool) -> dict:
         "flop_ratio": per_iteration / (total / rate),
         "sparse_minimum_flops": flops["sparse_minimum"],
     }
-    if with_scipy and case != "O":
+    if case == "TRAIN":
+        row["backward_s"] = statistics.median(backward[1:])
+    if with_scipy and case not in ("O", "TRAIN"):
         row.update(run_scipy(scene, init))
         row["speedup_vs_scipy"] = row["scipy_s"] / median
     return row
+
+
+def training_step(scene, init, hessian: str = "exact") -> tuple[ts.SolveResult, float]:
+    """One training step on a scene: the differentiable solve from ``init`` with the
+    observations as the learned input, a loss on the solved poses, and its backward (the
+    default implicit backward, ``ImplicitConfig(hessian=hessian)``). Returns the forward
+    result and the backward's seconds."""
+    observations = scene.observations.clone().requires_grad_(True)
+    problem = ts.PointMapProblem(
+        init.poses,
+        init.points,
+        scene.pose_index,
+        scene.point_index,
+        observations,
+        valid=scene.valid,
+    )
+    result = ts.solve_differentiable(
+        problem.pose_tangent.detach(),
+        problem.points.detach(),
+        problem.data,
+        implicit=ts.ImplicitConfig(hessian=hessian),
+    )
+    loss = (result.pose_tangent - scene_tangent(scene)).square().sum()
+    t = time.perf_counter()
+    loss.backward()
+    return result, time.perf_counter() - t
+
+
+def scene_tangent(scene) -> torch.Tensor:
+    """ξ of the scene's ground-truth poses, (B, m, 6): the training target."""
+    return se3.log(scene.poses_gt)
 
 
 def run_scipy(scene, init) -> dict:

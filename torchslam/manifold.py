@@ -545,7 +545,7 @@ class SE3Tangent(Manifold):
                 "with se3.log(se3.exp(xi))"
             )
 
-    def retract(self, x: Tensor, delta: Tensor) -> Tensor:
+    def retract(self, x: Tensor, delta: Tensor, *, exp_x: Tensor | None = None) -> Tensor:
         """The solver's step ξ ← Log(Exp(ξ)·Exp(δ)) (left: Log(Exp(δ)·Exp(ξ))), seed eq. L1/L2.
 
         The same values as :meth:`plus` (bit for bit for |ω|, |δω| ≤ 2²⁰ and translations up
@@ -559,21 +559,26 @@ class SE3Tangent(Manifold):
         Args:
             x: twists ξ = (ω, v), rotation first, |ω| ≤ π, shape (..., 6).
             delta: steps δ = (δω, δv), shape (..., 6); leading dims broadcast with x's.
+            exp_x: ``se3.exp(x, form="fast")`` when the caller has it already (the solver's
+                linearization does), shape (..., 4, 4); it is used as given.
 
         Returns:
             Twists, shape (broadcast batch, 6).
         """
         fn = "SE3Tangent.retract"
         self._check_plus_arguments(fn, x, delta)
-        result = _unchecked(self._retract, x, delta)
+        if exp_x is not None:
+            _checks.check_tensor(fn, "exp_x", exp_x, (4, 4))
+        result = _unchecked(self._retract, x, delta, exp_x)
         _checks.check_result_finite(fn, result, x=x, delta=delta)
         return result
 
-    def _retract(self, x: Tensor, delta: Tensor) -> Tensor:
+    def _retract(self, x: Tensor, delta: Tensor, exp_x: Tensor | None = None) -> Tensor:
+        T = se3.exp(x, form="fast") if exp_x is None else exp_x
         if self.perturbation == "right":
-            moved = se3.log(se3.exp(x, form="fast") @ se3.exp(delta, form="fast"))
+            moved = se3.log(T @ se3.exp(delta, form="fast"))
         else:
-            moved = se3.log(se3.exp(delta, form="fast") @ se3.exp(x, form="fast"))
+            moved = se3.log(se3.exp(delta, form="fast") @ T)
         return torch.where((delta == 0).all(dim=-1, keepdim=True), x, moved)
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:

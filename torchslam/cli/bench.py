@@ -27,7 +27,7 @@ __all__ = ["add_arguments", "main", "run"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam bench``."""
     parser.add_argument(
-        "--cases", nargs="+", default=["S", "M", "L", "O", "BATCH"], choices=list(REPEATS)
+        "--cases", nargs="+", default=["S", "M", "L", "O", "BATCH", "TRAIN"], choices=list(REPEATS)
     )
     parser.add_argument(
         "--repeats", type=int_range(1, 1000), default=None, help="runs per case [1, 1000] (median)"

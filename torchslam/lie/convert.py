@@ -26,15 +26,20 @@ What comes from pytorch-kinematics and what does not (checked by ``tests/lie/tes
 
 from __future__ import annotations
 
-from typing import Literal
+import functools
+import importlib
+import importlib.util
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
 
 import torch
-from pytorch_kinematics.transforms import Transform3d
-from pytorch_kinematics.transforms import rotation_conversions as _pk_rotation
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import _series, se3, so3
+
+if TYPE_CHECKING:
+    from pytorch_kinematics.transforms import Transform3d
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -51,6 +56,31 @@ __all__ = [
     "quaternion_to_matrix",
     "to_transform3d",
 ]
+
+
+@functools.cache
+def _pk_rotation():
+    """pytorch-kinematics' ``transforms.rotation_conversions`` (it imports only torch), loaded
+    from its file on first use: importing the package runs its ``__init__``, which pulls in
+    matplotlib.pyplot, lxml and absl (about 1.2 s) that no conversion needs. The ordinary
+    import when the file is not where pytorch-kinematics ≥ 0.7 keeps it."""
+    spec = importlib.util.find_spec("pytorch_kinematics")
+    locations = [] if spec is None else list(spec.submodule_search_locations or [])
+    path = Path(locations[0], "transforms", "rotation_conversions.py") if locations else None
+    if path is None or not path.is_file():
+        return importlib.import_module("pytorch_kinematics.transforms.rotation_conversions")
+    file_spec = importlib.util.spec_from_file_location(
+        "torchslam.lie._pytorch_kinematics_rotation_conversions", path
+    )
+    module = importlib.util.module_from_spec(file_spec)
+    file_spec.loader.exec_module(module)
+    return module
+
+
+def _transform3d_class() -> type:
+    from pytorch_kinematics.transforms import Transform3d  # the whole package: lazily
+
+    return Transform3d
 
 
 def _canonical(q: Tensor) -> Tensor:
@@ -130,7 +160,7 @@ def quaternion_to_matrix(q: Tensor) -> Tensor:
     """
     _checks.check_tensor("convert.quaternion_to_matrix", "q", q, (4,))
     _checks.check_unit_quaternion("convert.quaternion_to_matrix", "q", q)
-    return _pk_rotation.quaternion_to_matrix(q)
+    return _pk_rotation().quaternion_to_matrix(q)
 
 
 def matrix_to_quaternion(R: Tensor) -> Tensor:
@@ -234,7 +264,7 @@ def pose_from_translation_quaternion(t: Tensor, q: Tensor) -> Tensor:
     batch = _checks.check_broadcast(fn, t=t.shape[:-1], q=q.shape[:-1])
     _checks.check_finite(fn, "t", t)
     _checks.check_unit_quaternion(fn, "q", q)
-    R = _pk_rotation.quaternion_to_matrix(q)
+    R = _pk_rotation().quaternion_to_matrix(q)
     return se3._assemble(R.expand(*batch, 3, 3), t.expand(*batch, 3))
 
 
@@ -349,7 +379,7 @@ def to_transform3d(T: Tensor) -> Transform3d:
     """
     _checks.check_tensor("convert.to_transform3d", "T", T, (4, 4))
     _checks.check_pose_matrix("convert.to_transform3d", "T", T)
-    return Transform3d(matrix=T.reshape(-1, 4, 4), dtype=T.dtype, device=T.device)
+    return _transform3d_class()(matrix=T.reshape(-1, 4, 4), dtype=T.dtype, device=T.device)
 
 
 def from_transform3d(transform: Transform3d) -> Tensor:
@@ -362,7 +392,7 @@ def from_transform3d(transform: Transform3d) -> Tensor:
     Returns:
         Poses, shape (N, 4, 4), with the transform's dtype and device.
     """
-    if not isinstance(transform, Transform3d):
+    if not isinstance(transform, _transform3d_class()):
         raise TypeError(
             "convert.from_transform3d: argument 'transform' must be a "
             f"pytorch_kinematics.transforms.Transform3d, got {type(transform).__name__}"

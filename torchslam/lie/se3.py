@@ -145,8 +145,7 @@ def _exp(xi: Tensor) -> Tensor:
     # The θ-power form: exp(xi, form="fast").
     omega, v = xi[..., :3], xi[..., 3:]
     theta2 = (omega * omega).sum(-1)
-    a, b = _series.sinc_coefficients(theta2)
-    c = _series.jacobian_coefficient_c(theta2)
+    a, b, c = _series.exp_coefficients(theta2)
     R = so3._skew_quadratic(omega, theta2, a, b)
     # t = J_l(ω) v = v + b ω × v + c ω × (ω × v), without forming J_l.
     w_x_v = torch.linalg.cross(omega, v, dim=-1)

@@ -20,8 +20,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.csgraph
 import torch
 from torch import Tensor
 
@@ -107,6 +105,8 @@ def unanchored_gauges(
         (still_weak (B, m) bool: weak poses no term constrains, held: [(b, pose, group)] the
         gauges held fixed with their component's weak poses).
     """
+    import scipy.sparse.csgraph  # lazily: import torchslam stays cheap
+
     still_weak = weak.clone()
     held = []
     for b, (edges, anchors) in enumerate(links):

@@ -188,6 +188,9 @@ class BlockLinearization:
     terms: TermLinearization | None = None
     # Scalar weights w of the point observations, (B, E) (0 on padding), or None.
     scale: Tensor | None = None
+    # The poses T = Exp(ξ) the linearization was taken at, (B, m, 4, 4) (the retraction
+    # reuses them), or None.
+    poses: Tensor | None = None
 
 
 @dataclass
@@ -214,6 +217,8 @@ class StructuredLinearization:
     free_point: Tensor
     # The pose terms (already folded into cost, pose_gradient, pose_blocks), or None.
     terms: TermLinearization | None = None
+    # The poses T = Exp(ξ) the linearization was taken at, (B, m, 4, 4), or None.
+    poses: Tensor | None = None
 
 
 def whitening_factors(data: PointMapData) -> Tensor | None:
@@ -284,6 +289,7 @@ def linearize(
     structured = structured and not point_terms(data)
     poses = se3.exp(pose_tangent, form="fast")
     lin = _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured)
+    lin.poses = poses
     if not data.terms:
         return lin
     terms = linearize_terms(poses, points, data, jacobian_mode)

@@ -39,14 +39,16 @@ __all__ = ["State", "retract", "run", "update_status"]
 _POSES = manifold.SE3Tangent()
 
 
-def retract(pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor]:
+def retract(
+    pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor, poses: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """x ⊞ δ: ξ ← Log(Exp(ξ)·Exp(δp)) (seed eq. L1/L2, :class:`torchslam.manifold.SE3Tangent`),
-    X ← X + δl.
+    X ← X + δl; ``poses``: Exp(ξ) when the caller has it (the linearization's).
 
     A pose whose step is exactly zero (a fixed pose) keeps its ξ bit for bit: the Log∘Exp
     round trip would move it by a few ulps.
     """
-    return _POSES.retract(pose_tangent, dp), points + dl
+    return _POSES.retract(pose_tangent, dp, exp_x=poses), points + dl
 
 
 @dataclass
@@ -223,7 +225,7 @@ def iterate(
             ok = factorization.ok
         tock = time.perf_counter()
         solve_seconds += tock - tick
-        xi_new, X_new = retract(xi, X, dp, dl)
+        xi_new, X_new = retract(xi, X, dp, dl, lin.poses)
         lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured)
         linearize_seconds += time.perf_counter() - tock
         with torch.no_grad():

@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse
 import torch
 from torch import Tensor
 
@@ -601,6 +600,8 @@ def choose_reduced_solver(
     pose, point, active = (
         t.cpu().numpy() for t in (edges.pose_index, edges.point_index, edges.active)
     )
+    import scipy.sparse  # lazily: import torchslam stays cheap
+
     for b in range(B):
         A = scipy.sparse.csr_matrix(
             (np.ones(int(active[b].sum())), (pose[b][active[b]], point[b][active[b]])),

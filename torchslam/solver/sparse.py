@@ -30,8 +30,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
 import torch
 from torch import Tensor
 
@@ -52,6 +50,8 @@ def fill_reducing_order(n: int, first: np.ndarray, second: np.ndarray, ordering:
     """
     if ordering == "natural" or n <= 1:
         return np.arange(n)
+    import scipy.sparse.linalg  # lazily (here and below): import torchslam stays cheap
+
     both = (first >= 0) & (second >= 0) & (first != second)
     r = np.concatenate((np.arange(n), first[both], second[both]))
     c = np.concatenate((np.arange(n), second[both], first[both]))
@@ -70,6 +70,8 @@ def factorization_work(n: int, first: np.ndarray, second: np.ndarray, ordering: 
     """Σ_j c_j², c_j the entries of column j of the Cholesky factor of an n-block pattern with
     edges (first[e], second[e]) in the fill-reducing order: proportional to the flops of its
     sparse factorization (a dense one: Σ_j (n − j)² ≈ n³/3)."""
+    import scipy.sparse.linalg
+
     order = fill_reducing_order(n, first, second, ordering)
     both = (first >= 0) & (second >= 0) & (first != second)
     r = np.concatenate((np.arange(n), order[first[both]], order[second[both]]))
@@ -206,6 +208,8 @@ class BlockPattern:
         by round-off then gives a step that Levenberg-Marquardt judges by its model-decrease
         and gain tests like any other.
         """
+        import scipy.sparse.linalg
+
         flat = values.detach().cpu().numpy().reshape(-1, 36)
         factors = []
         for layout in self.layouts:
