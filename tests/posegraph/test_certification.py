@@ -311,3 +311,20 @@ def test_certify_rejects_bad_input(generator):
         certification.certify(split)
     with pytest.raises(ValueError, match="PoseGraphSolverConfig: 'objective'"):
         PoseGraphSolverConfig(objective="l2")
+
+
+@pytest.mark.parametrize("objective", ["chi2", "sesync"])
+def test_cli_certifies(generator, tmp_path, objective):
+    from torchslam.cli.posegraph import PoseGraphOptions, run_posegraph
+
+    path = tmp_path / "tiny.g2o"
+    g2o.write_g2o(path, _graph_3d(generator, n=6, loops=5, noise=0.1))
+    lines = []
+    run_posegraph(
+        PoseGraphOptions(path=path, objective=objective, certify=True, init="chordal"),
+        echo=lines.append,
+    )
+    text = "\n".join(lines)
+    assert "certified global optimum: yes (λ_min = " in text
+    assert f"(minimized: {objective})" in text
+    assert ("SE-Sync refinement of the chi2 solution" in text) == (objective == "chi2")
