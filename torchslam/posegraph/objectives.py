@@ -216,11 +216,16 @@ def sesync_objective(graph: PoseGraph, poses: Tensor | None = None) -> Tensor:
 def sesync_residual(
     T_i: Tensor, T_j: Tensor, Z_ij: Tensor, sqrt_kappa: Tensor, sqrt_tau: Tensor
 ) -> Tensor:
-    """The SE-Sync residual (√κ vec(R_j − R_i R̃_ij), √τ (t_j − t_i − R_i t̃_ij)), (…, 12):
-    poses (…, 4, 4), weights' square roots (…); vec row-major."""
+    """The SE-Sync residual in frame i, (…, 12): (√κ vec(R_iᵀR_j − R̃_ij),
+    √τ (R_iᵀ(t_j − t_i) − t̃_ij)), vec row-major; poses (…, 4, 4), weights' square roots (…).
+
+    For rotations R_i its norm is that of (√κ vec(R_j − R_i R̃_ij), √τ (t_j − t_i − R_i t̃_ij))
+    (R_i is orthogonal), so ‖r‖² is the edge's term of the SE-Sync objective (see
+    :class:`SESyncTerm` for why frame i)."""
     R_i, R_j, R_m = T_i[..., :3, :3], T_j[..., :3, :3], Z_ij[..., :3, :3]
-    rotation = (R_j - R_i @ R_m).flatten(-2)
-    translation = T_j[..., :3, 3] - T_i[..., :3, 3] - (R_i @ Z_ij[..., :3, 3:4])[..., 0]
+    Rt = R_i.transpose(-1, -2)
+    rotation = (Rt @ R_j - R_m).flatten(-2)
+    translation = (Rt @ (T_j[..., :3, 3:4] - T_i[..., :3, 3:4]))[..., 0] - Z_ij[..., :3, 3]
     return torch.cat((sqrt_kappa[..., None] * rotation, sqrt_tau[..., None] * translation), dim=-1)
 
 
@@ -229,28 +234,36 @@ def sesync_jacobians(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(r, ∂r/∂δ_i, ∂r/∂δ_j) of :func:`sesync_residual` for T ← T·Exp(δ), δ = (ω, v): shapes
     (…, 12), (…, 12, 6), (…, 12, 6); the derivation is in :class:`SESyncTerm`."""
-    r = sesync_residual(T_i, T_j, Z_ij, sqrt_kappa, sqrt_tau)
-    R_i, R_j, R_m = T_i[..., :3, :3], T_j[..., :3, :3], Z_ij[..., :3, :3]
+    R_i, R_j = T_i[..., :3, :3], T_j[..., :3, :3]
+    Rt = R_i.transpose(-1, -2)
+    A = Rt @ R_j
+    s = (Rt @ (T_j[..., :3, 3:4] - T_i[..., :3, 3:4]))[..., 0]
+    r = torch.cat(
+        (
+            sqrt_kappa[..., None] * (A - Z_ij[..., :3, :3]).flatten(-2),
+            sqrt_tau[..., None] * (s - Z_ij[..., :3, 3]),
+        ),
+        dim=-1,
+    )
     G = so3.hat(torch.eye(3, dtype=T_i.dtype, device=T_i.device))  # G[k] = [e_k]×
     lead = r.shape[:-1]
     sk, st = sqrt_kappa[..., None, None], sqrt_tau[..., None, None]
-    # ∂ vec(R_j [ω]×)/∂ω_k = vec(R_j G_k); ∂ vec(−R_i [ω]× R̃)/∂ω_k = −vec(R_i G_k R̃).
-    rot_j = torch.einsum("...ac,kcb->...abk", R_j, G).reshape(*lead, 9, 3)
-    rot_i = -torch.einsum("...ac,kcd,...db->...abk", R_i, G, R_m).reshape(*lead, 9, 3)
+    # ∂ vec(A)/∂ω_j,k = vec(A G_k); ∂ vec(A)/∂ω_i,k = −vec(G_k A).
+    rot_j = torch.einsum("...ac,kcb->...abk", A, G).reshape(*lead, 9, 3)
+    rot_i = -torch.einsum("kac,...cb->...abk", G, A).reshape(*lead, 9, 3)
     zeros = r.new_zeros(*lead, 9, 3)
-    # t_i ← t_i + R_i v_i and R_i ← R_i (I + [ω_i]×): −R_i [ω_i]× t̃ = R_i [t̃]× ω_i.
-    trans_i_w = R_i @ so3.hat(Z_ij[..., :3, 3])
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand(*lead, 3, 3)
     J_i = torch.cat(
         (
             torch.cat((sk * rot_i, zeros), dim=-1),
-            torch.cat((st * trans_i_w, -st * R_i), dim=-1),
+            torch.cat((st * so3.hat(s), -st * eye), dim=-1),
         ),
         dim=-2,
     )
     J_j = torch.cat(
         (
             torch.cat((sk * rot_j, zeros), dim=-1),
-            torch.cat((torch.zeros_like(R_j), st * R_j), dim=-1),
+            torch.cat((torch.zeros_like(A), st * A), dim=-1),
         ),
         dim=-2,
     )
@@ -262,19 +275,29 @@ class SESyncTerm(Term):
     objective over the body → world vertex poses T_i (as :func:`torchslam.posegraph.solve.
     graph_data` holds them).
 
-    Residual of edge (i, j), 12 entries (vec row-major):
+    Residual of edge (i, j), 12 entries (vec row-major), in frame i:
 
-        r_ij = (√κ_ij · vec(R_j − R_i R̃_ij),  √τ_ij · (t_j − t_i − R_i t̃_ij)),
+        r_ij = (√κ_ij · vec(R_iᵀR_j − R̃_ij),  √τ_ij · (R_iᵀ(t_j − t_i) − t̃_ij)),
 
     with scalar weight 2 on every instance, so that the loop's cost ½ Σ 2‖r_ij‖² equals the
-    SE-Sync objective f = Σ κ‖R_j − R_i R̃_ij‖_F² + τ‖t_j − t_i − R_i t̃_ij‖² exactly (no ½).
+    SE-Sync objective f = Σ κ‖R_j − R_i R̃_ij‖_F² + τ‖t_j − t_i − R_i t̃_ij‖² exactly (no ½):
+    R_i is orthogonal, so ‖R_iᵀR_j − R̃‖_F = ‖R_j − R_i R̃‖_F and ‖R_iᵀ(t_j − t_i) − t̃‖ =
+    ‖t_j − t_i − R_i t̃‖. Frame i rather than the world frame: the world-frame residual
+    (R_j − R_i R̃, t_j − t_i − R_i t̃) rotates with a rigid motion of a part of the graph, so its
+    Gauss-Newton model puts a spurious curvature ~Σ‖r‖² on every such motion (the true cost
+    is flat along it) and LM converged linearly at rate ≈ 0.95 per iteration on a 2,000-pose
+    torus (100 iterations did not reach the optimum) and ≈ 0.7 on parking-garage; in frame i
+    the residual is invariant to rigid motions of the pair, like the chi2 residual, and LM
+    converges in a few iterations.
 
     Jacobians for T ← T·Exp(δ), δ = (ω, v): to first order R ← R(I + [ω]×) and t ← t + R v
-    (the translation of T·Exp(δ) is t + R·V(ω)v, V(0) = I). Hence, G_k = [e_k]×,
+    (the translation of T·Exp(δ) is t + R·V(ω)v, V(0) = I). With A = R_iᵀR_j,
+    s = R_iᵀ(t_j − t_i) and G_k = [e_k]×:
 
-    - ∂ vec(R_j − R_i R̃)/∂ω_j,k = vec(R_j G_k),  ∂/∂ω_i,k = −vec(R_i G_k R̃),  0 for v;
-    - ∂(t_j − t_i − R_i t̃)/∂v_j = R_j,  ∂/∂v_i = −R_i,  ∂/∂ω_i = R_i [t̃]× (from
-      −R_i [ω_i]× t̃ = R_i [t̃]× ω_i),  ∂/∂ω_j = 0;
+    - T_j: A ← A(I + [ω_j]×), s ← s + A v_j: ∂vec(A)/∂ω_j,k = vec(A G_k), ∂s/∂v_j = A,
+      ∂s/∂ω_j = 0;
+    - T_i: R_iᵀ ← (I − [ω_i]×)R_iᵀ, so A ← A − [ω_i]×A and s ← s − [ω_i]×s − v_i:
+      ∂vec(A)/∂ω_i,k = −vec(G_k A), ∂s/∂ω_i = [s]×, ∂s/∂v_i = −I;
 
     each scaled by √κ or √τ (checked against ``jacrev`` and central differences in the tests).
 
