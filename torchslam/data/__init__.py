@@ -1,14 +1,18 @@
 """Data: seeded synthetic ICP-SLAM scenes (``synthetic``), the benchmark cases of issue 4 and
-loop scenes with odometry and loop-closure measurements (``loop``)."""
+loop scenes with odometry and loop-closure measurements (``loop``), and synthetic pose graphs
+(``posegraph``: a torus or grid with loop closures, optionally wrong ones)."""
 
 from torchslam.data.loop import LoopScene, make_loop_scene
+from torchslam.data.posegraph import SyntheticPoseGraph, make_pose_graph
 from torchslam.data.synthetic import BENCHMARK_CASES, SyntheticScene, benchmark_case, make_scene
 
 __all__ = [
     "BENCHMARK_CASES",
     "LoopScene",
+    "SyntheticPoseGraph",
     "SyntheticScene",
     "benchmark_case",
     "make_loop_scene",
+    "make_pose_graph",
     "make_scene",
 ]

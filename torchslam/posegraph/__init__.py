@@ -5,7 +5,8 @@ body-i points into the world and an edge measures Z_ij ≈ T_i⁻¹ T_j (g2o's m
 information matrix in (ω, v) order. Files are read and written by :mod:`torchslam.io.g2o`.
 """
 
-from torchslam.posegraph import between, initialization, objectives
+from torchslam.posegraph import between, certification, initialization, objectives
+from torchslam.posegraph.certification import certify
 from torchslam.posegraph.graph import PoseGraph
 
-__all__ = ["PoseGraph", "between", "initialization", "objectives"]
+__all__ = ["PoseGraph", "between", "certification", "certify", "initialization", "objectives"]

@@ -6,7 +6,11 @@ Problem. Over the free vertex poses T_i (body i → world), minimize the standar
     r_ij = Log(Z_ij⁻¹ T_i⁻¹ T_j)   (between, :mod:`torchslam.posegraph.between`),
     r_p  = Log(Z_p⁻¹ T_(k_p))        (optional pose priors, :class:`PosePriors`),
 
-ξ = (ω, v) rotation first, Ω in (ω, v) order. The gauge: the vertices in ``fixed`` keep their
+ξ = (ω, v) rotation first, Ω in (ω, v) order — or, with ``PoseGraphSolverConfig(objective=
+"sesync")``, the SE-Sync objective f(T) = Σ κ‖R_j − R_i R̃_ij‖_F² + τ‖t_j − t_i − R_i t̃_ij‖²
+(:class:`torchslam.posegraph.objectives.SESyncTerm`, the loop's cost equals f; priors keep
+their ½ r_pᵀΩ_p r_p), whose global optimum :mod:`torchslam.posegraph.certification`
+certifies. The gauge: the vertices in ``fixed`` keep their
 poses (default: the file's ``FIX`` vertices, or vertex 0 when it fixes none).
 
 :func:`solve_pose_graph` turns the graph into the solver's objective (:func:`graph_data`: one
@@ -41,6 +45,7 @@ from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.objective.data import PointMapData
 from torchslam.objective.terms import PosePriorTerm, RelativePoseTerm
+from torchslam.posegraph import objectives
 from torchslam.posegraph.graph import PoseGraph, check_information, check_vertex_indices
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_int, check_number
@@ -61,6 +66,7 @@ _DAMPINGS = ("marquardt", "levenberg")
 _JACOBIANS = ("analytic", "jacrev")
 _LINEAR_SOLVERS = ("auto", "sparse", "dense")
 _ORDERINGS = ("mmd", "colamd", "natural")
+_OBJECTIVES = ("chi2", "sesync")
 
 
 @dataclass(frozen=True)
@@ -100,6 +106,9 @@ class PoseGraphSolverConfig:
     dense_max_variables: int = 1200
     # Fill-reducing ordering of the vertex graph for "sparse": "mmd", "colamd" or "natural".
     ordering: Literal["mmd", "colamd", "natural"] = "mmd"
+    # Objective of the edges: "chi2" (½ Σ rᵀΩr, r = Log(Z⁻¹ T_i⁻¹ T_j)) or "sesync" (the
+    # SE-Sync objective of Rosen et al., objectives.SESyncTerm).
+    objective: Literal["chi2", "sesync"] = "chi2"
 
     def __post_init__(self) -> None:
         fn = "PoseGraphSolverConfig"
@@ -108,6 +117,7 @@ class PoseGraphSolverConfig:
             ("jacobian", _JACOBIANS),
             ("linear_solver", _LINEAR_SOLVERS),
             ("ordering", _ORDERINGS),
+            ("objective", _OBJECTIVES),
         ):
             value = getattr(self, name)
             if not isinstance(value, str) or value not in allowed:
@@ -200,7 +210,8 @@ class PoseGraphSolveResult:
     status: Status
     # Iterations (linear solves, accepted or rejected).
     iterations: int
-    # Cost ½ Σ rᵀΩr at the start and at the end.
+    # The objective at the start and at the end: ½ Σ rᵀΩr ("chi2") or the SE-Sync objective
+    # f ("sesync"), plus ½ Σ r_pᵀΩ_p r_p of the priors.
     initial_cost: float
     final_cost: float
     # Cost after each iteration, (K + 1,), float64 on the CPU; entry 0 is the initial cost.
@@ -294,10 +305,17 @@ def _check_inputs(
         )
 
 
-def _check_information(graph: PoseGraph, priors: PosePriors | None) -> None:
+def _check_information(
+    graph: PoseGraph, priors: PosePriors | None, objective: str = "chi2"
+) -> None:
     """ValueError naming the first edge or prior whose information is not positive definite
-    (when validation is on); the terms whiten with the same matrices."""
+    (when validation is on); the terms whiten with the same matrices. The SE-Sync objective
+    needs only the blocks its weights use (objectives.graph_sesync_weights)."""
     information = graph.information.detach()
+    edges = graph.num_edges
+    if objective == "sesync":
+        objectives.graph_sesync_weights(graph, "solve_pose_graph")
+        information, edges = information[:0], 0
     if priors is not None:
         information = torch.cat((information, priors.information.detach()))
     if not _checks.value_checks_active() or information.numel() == 0:
@@ -307,8 +325,8 @@ def _check_information(graph: PoseGraph, priors: PosePriors | None) -> None:
         k = int((info > 0).nonzero()[0, 0])
         where = (
             f"'graph.information' of edge {k}"
-            if k < graph.num_edges
-            else f"'priors.information' of prior {k - graph.num_edges}"
+            if k < edges
+            else f"'priors.information' of prior {k - edges}"
         )
         raise ValueError(
             f"solve_pose_graph: the information matrices must be symmetric positive definite "
@@ -339,24 +357,31 @@ def _solver_config(config: PoseGraphSolverConfig | SolverConfig) -> SolverConfig
 
 
 def graph_data(
-    graph: PoseGraph, priors: PosePriors | None = None, fixed: Tensor | None = None
+    graph: PoseGraph,
+    priors: PosePriors | None = None,
+    fixed: Tensor | None = None,
+    objective: str = "chi2",
 ) -> PointMapData:
     """The graph as the solver's objective: B = 1 problem whose m = N poses are the body →
     world vertices T_i themselves (so the loop's right perturbation T_i·Exp(δ) is the one
     g2o and GTSAM use), no points, the edges as one :class:`torchslam.RelativePoseTerm`
     with ``convention="frame_to_world"`` (r = Log(Z_ij⁻¹ T_i⁻¹ T_j)) and the priors as a
     :class:`torchslam.PosePriorTerm` (r_p = Log(Z_p⁻¹ T_k)), the vertices ``fixed`` (F,)
-    held.
+    held. With ``objective="sesync"`` the edges are an
+    :class:`torchslam.posegraph.objectives.SESyncTerm` instead (SE-Sync's weights).
     """
     N = graph.num_vertices
-    terms = [
-        RelativePoseTerm(
-            graph.edges,
-            graph.measurements,
-            information=graph.information,
-            convention="frame_to_world",
-        )
-    ]
+    if objective == "sesync":
+        terms = [objectives.SESyncTerm.from_graph(graph)]
+    else:
+        terms = [
+            RelativePoseTerm(
+                graph.edges,
+                graph.measurements,
+                information=graph.information,
+                convention="frame_to_world",
+            )
+        ]
     if priors is not None and priors.num_priors:
         terms.append(PosePriorTerm(priors.indices, priors.poses, information=priors.information))
     fixed_poses = torch.zeros(1, N, dtype=torch.bool, device=graph.poses.device)
@@ -387,7 +412,8 @@ def solve_pose_graph(
     fixed: Tensor | None = None,
     callback: Callable[[IterationInfo], None] | None = None,
 ) -> PoseGraphSolveResult:
-    """Minimize ½ Σ rᵀΩr over the free vertex poses by Levenberg-Marquardt (module docstring).
+    """Minimize ½ Σ rᵀΩr (or the SE-Sync objective, ``config.objective``) over the free
+    vertex poses by Levenberg-Marquardt (module docstring).
 
     Conventions: T_i maps body-i points into the world; r_ij = Log(Z_ij⁻¹ T_i⁻¹ T_j) and
     r_p = Log(Z_p⁻¹ T_k), ξ = (ω, v) rotation first, Ω in (ω, v) order; the retraction is
@@ -421,7 +447,7 @@ def solve_pose_graph(
     _check_inputs(graph, poses, priors, fixed, config, callback)
     start = time.perf_counter()
     with torch.no_grad():
-        _check_information(graph, priors)
+        _check_information(graph, priors, getattr(config, "objective", "chi2"))
     solver_config = _solver_config(config)
     if isinstance(config, PoseGraphSolverConfig) and config.linear_solver == "auto":
         # The pose-graph rule: dense up to dense_max_variables free unknowns, else sparse
@@ -431,7 +457,7 @@ def solve_pose_graph(
         solver_config = dataclasses.replace(solver_config, reduced_solver=reduced)
     with torch.no_grad(), _checks.validation(False):
         T = poses.detach()
-        data = graph_data(graph, priors, fixed)
+        data = graph_data(graph, priors, fixed, getattr(config, "objective", "chi2"))
         xi = se3.log(T)[None]
         plan = LinearPlan.build(data, solver_config)
 
