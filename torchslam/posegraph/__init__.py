@@ -6,6 +6,6 @@ information matrix in (ω, v) order. Files are read and written by :mod:`torchsl
 """
 
 from torchslam.posegraph import between, initialization, objectives
-from torchslam.posegraph.graph import PoseGraph
+from torchslam.posegraph.graph import GraphSource, PoseGraph
 
-__all__ = ["PoseGraph", "between", "initialization", "objectives"]
+__all__ = ["GraphSource", "PoseGraph", "between", "initialization", "objectives"]
