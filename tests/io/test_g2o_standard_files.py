@@ -286,3 +286,60 @@ def test_numbers_the_bulk_parser_cannot_vouch_for_name_their_line(token, message
     edges[2] = edges[2].replace(" 20.0 ", f" {token} ", 1)
     with pytest.raises(ValueError, match=rf"<string>, line 8: {message}"):
         g2o.parse_g2o("\n".join(vertices + edges))
+
+
+def test_bulk_scan_never_accepts_what_the_line_scan_refuses():
+    """Seeded: one token of a valid file replaced by a tricky one. Whenever the bulk scan
+    vouches for the file, the line-by-line scan accepts it too, with the same numbers."""
+    import random
+
+    from torchslam.io.g2o import _scan_fast, _scan_lines, _Unsure
+
+    vertices, edges = _graph_2d_lines()
+    lines = [*vertices, "FIX 10", *edges]
+    tricky = [
+        "1_0",
+        "١",
+        "nan",
+        "-inf",
+        "1e999",
+        "1e-400",
+        "+.5",
+        "1.",
+        ".",
+        "-",
+        "1e+",
+        "007",
+        "+3",
+        "-3",
+        "9" * 30,
+        "0x1",
+        "1e5",
+        "",
+        "1 2",
+        "\t4",
+        "EDGE_SE2",
+        "#",
+    ]
+    rng = random.Random(14)
+
+    def fail(lineno: int, message: str) -> ValueError:
+        return ValueError(message)
+
+    vouched = 0
+    for _ in range(300):
+        k = rng.randrange(len(lines))
+        words = lines[k].split()
+        words[rng.randrange(len(words))] = rng.choice(tricky)
+        case = [*lines[:k], " ".join(words), *lines[k + 1 :]]
+        try:
+            fast = _scan_fast(case)
+        except _Unsure:
+            continue
+        vouched += 1
+        slow = _scan_lines(case, fail)  # must not raise
+        assert fast.vertex_ids == slow.vertex_ids and fast.edge_ids == slow.edge_ids
+        assert fast.fixed_ids == slow.fixed_ids
+        assert np.array_equal(fast.vertex_values, slow.vertex_values)
+        assert np.array_equal(fast.edge_values, slow.edge_values)
+    assert vouched > 20  # the bulk scan does take the plain replacements
