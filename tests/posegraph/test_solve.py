@@ -340,7 +340,7 @@ def test_cli_writes_optimized_graph_and_figure(tiny_g2o, tmp_path, capsys):
     assert float(objectives.standard_cost(optimized)) < 0.1 * before
 
 
-@pytest.mark.parametrize("init", ["odometry", "chordal"])
+@pytest.mark.parametrize("init", ["file", "odometry", "chordal"])
 def test_cli_initializations(tiny_g2o, init, capsys):
     assert cli.main(["posegraph", str(tiny_g2o), "--init", init, "--max-iterations", "3"]) == 0
     assert f"initialization: {init}" in capsys.readouterr().out

@@ -29,6 +29,7 @@ from torchslam.registration.report import plane_distances
 
 if TYPE_CHECKING:
     from torchslam.data import SyntheticScene
+    from torchslam.posegraph.graph import PoseGraph
     from torchslam.posegraph.solve import PoseGraphSolveResult
     from torchslam.registration.pipeline import Registration
     from torchslam.solver import SolveResult
@@ -182,41 +183,69 @@ def plot_bench(rows: list[dict], path: Path) -> None:
 
 
 def plot_trajectories(
-    path: Path, initial: torch.Tensor, result: PoseGraphSolveResult, title: str = ""
+    path: Path,
+    initial: torch.Tensor,
+    result: PoseGraphSolveResult,
+    title: str = "",
+    graph: PoseGraph | None = None,
 ) -> None:
-    """Figure: vertex positions t_i before and after (x-y and x-z), and the cost per iteration.
+    """Figure: vertex positions t_i before and after, and the cost per iteration.
+
+    3D graphs get an x-y and an x-z projection, 2D graphs (``graph.dimension == 2``) the x-y
+    plane only. With ``graph``, its loop closures (the edges that are not odometry, see
+    :meth:`PoseGraph.odometry_mask`) are drawn as thin lines between the optimized positions.
 
     Args:
         path: the figure file (format from its suffix).
         initial: initial poses, shape (N, 4, 4) (body → world; positions are the translations).
         result: the solve result.
         title: a title for the figure (e.g. the file name).
+        graph: the pose graph (its dimension and edges), or None (3D, no loop closures drawn).
 
     Raises:
         MatplotlibMissingError: matplotlib is not installed.
     """
     plt = require_pyplot()
+    from matplotlib.collections import LineCollection
 
     before = initial[:, :3, 3].detach().cpu().double().numpy()
     after = result.poses[:, :3, 3].detach().cpu().double().numpy()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
-    for ax, (a, b) in zip(axes[:2], ((0, 1), (0, 2)), strict=True):
+    planes = ((0, 1),) if graph is not None and graph.dimension == 2 else ((0, 1), (0, 2))
+    closures = np.zeros((0, 2), dtype=np.int64)
+    if graph is not None:
+        closures = graph.edges[~graph.odometry_mask()].cpu().numpy()
+    fig, axes = plt.subplots(1, len(planes) + 1, figsize=(5 * (len(planes) + 1), 4.8))
+    for ax, (a, b) in zip(axes[:-1], planes, strict=True):
+        if len(closures):
+            segments = np.stack(
+                (after[closures[:, 0]][:, [a, b]], after[closures[:, 1]][:, [a, b]]), 1
+            )
+            ax.add_collection(
+                LineCollection(
+                    segments,
+                    colors="tab:green",
+                    linewidths=0.4,
+                    alpha=0.7,
+                    label=f"loop closures ({len(closures)})",
+                )
+            )
         ax.plot(before[:, a], before[:, b], "r-", lw=0.6, alpha=0.6, label="initial")
         ax.plot(after[:, a], after[:, b], "b-", lw=0.8, label="optimized (LM)")
         ax.set_xlabel(f"{'xyz'[a]} (m)")
         ax.set_ylabel(f"{'xyz'[b]} (m)")
         ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(f"{'xyz'[a]}-{'xyz'[b]} projection")
+        ax.set_title(f"{'xyz'[a]}-{'xyz'[b]} {'plane' if len(planes) == 1 else 'projection'}")
         ax.legend(loc="best", fontsize=8)
     history = result.cost_history.numpy()
+    ax_cost = axes[-1]
     if (history > 0).all():
-        axes[2].semilogy(range(len(history)), history, "o-")
+        ax_cost.semilogy(range(len(history)), history, "o-")
     else:  # an exact graph reaches cost 0, which a log axis cannot show
-        axes[2].plot(range(len(history)), history, "o-")
-    axes[2].set_xlabel("iteration")
-    axes[2].set_ylabel("cost ½Σ rᵀΩr")
-    axes[2].set_title(f"Levenberg-Marquardt: {result.status.name}")
-    axes[2].grid(True, which="both", alpha=0.3)
+        ax_cost.plot(range(len(history)), history, "o-")
+    ax_cost.set_xlabel("iteration")
+    ax_cost.set_ylabel("cost ½Σ rᵀΩr")
+    ax_cost.set_title(f"Levenberg-Marquardt: {result.status.name}")
+    ax_cost.grid(True, which="both", alpha=0.3)
     if title:
         fig.suptitle(title)
     fig.tight_layout()

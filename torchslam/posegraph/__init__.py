@@ -7,6 +7,14 @@ information matrix in (ω, v) order. Files are read and written by :mod:`torchsl
 
 from torchslam.posegraph import between, certification, initialization, objectives
 from torchslam.posegraph.certification import certify
-from torchslam.posegraph.graph import PoseGraph
+from torchslam.posegraph.graph import GraphSource, PoseGraph
 
-__all__ = ["PoseGraph", "between", "certification", "certify", "initialization", "objectives"]
+__all__ = [
+    "GraphSource",
+    "PoseGraph",
+    "between",
+    "certification",
+    "certify",
+    "initialization",
+    "objectives",
+]

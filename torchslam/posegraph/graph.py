@@ -21,7 +21,29 @@ from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.objective.terms import RelativePoseTerm
 
-__all__ = ["PoseGraph"]
+__all__ = ["GraphSource", "PoseGraph"]
+
+
+@dataclass(frozen=True)
+class GraphSource:
+    """How :mod:`torchslam.io.g2o` built a :class:`PoseGraph` from a file.
+
+    The reader's rules are in :mod:`torchslam.io.g2o` ("Edge-only files", "Information
+    matrices that are not positive semidefinite").
+    """
+
+    # The file (or ``parse_g2o``'s ``source`` name).
+    path: str
+    # False for an edge-only file (no VERTEX lines): the vertices are the ids the edges name,
+    # and ``PoseGraph.poses`` chain the measurements along a spanning tree of the edges.
+    has_vertices: bool = True
+    # The handling of information matrices that are not positive semidefinite: "repair",
+    # "nearest" or "strict" (torchslam.io.g2o.INFORMATION_HANDLINGS).
+    information: str = "repair"
+    # Indices of the edges whose information matrix was replaced (empty under "strict").
+    adjusted_edges: tuple[int, ...] = ()
+    # Their line numbers in the file, in the same order.
+    adjusted_lines: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -53,9 +75,16 @@ class PoseGraph:
     dimension: int = 3
     # Indices of vertices fixed by the file (g2o ``FIX`` lines), shape (F,), int64.
     fixed: Tensor = dataclasses.field(default_factory=lambda: torch.zeros(0, dtype=torch.int64))
+    # How the graph was read from a file (set by torchslam.io.g2o), or None.
+    source: GraphSource | None = None
 
     def __post_init__(self) -> None:
         fn = "PoseGraph"
+        if self.source is not None and not isinstance(self.source, GraphSource):
+            raise TypeError(
+                f"{fn}: argument 'source' must be a GraphSource or None, got "
+                f"{_checks.describe(self.source)}"
+            )
         _checks.check_tensor(fn, "poses", self.poses, (4, 4), min_batch_dims=1, dims="N")
         n = self.poses.shape[-3]
         _checks.check_tensor(

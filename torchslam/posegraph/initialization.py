@@ -1,12 +1,14 @@
-"""Initial poses for a pose graph: the odometry chain and the chordal relaxation.
+"""Initial poses for a pose graph: the odometry chain, a spanning tree, the chordal relaxation.
 
 Conventions as in :mod:`torchslam.posegraph.graph`: T_i maps body-i points into the world,
-Z_ij ≈ T_i⁻¹ T_j = [[R̃_ij, t̃_ij], [0, 1]], information in ξ = (ω, v) order. Both initializers
+Z_ij ≈ T_i⁻¹ T_j = [[R̃_ij, t̃_ij], [0, 1]], information in ξ = (ω, v) order. The initializers
 keep vertex 0 (the smallest id) at its pose in the graph (the gauge), return (N, 4, 4) poses in
 the graph's dtype and device, and are not differentiable (they run in NumPy/SciPy).
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 import scipy.sparse
@@ -18,7 +20,7 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.posegraph.graph import PoseGraph
 
-__all__ = ["chordal_initialization", "odometry_initialization"]
+__all__ = ["chordal_initialization", "odometry_initialization", "spanning_tree_initialization"]
 
 
 def _check_graph(fn: str, graph: object) -> None:
@@ -68,6 +70,104 @@ def odometry_initialization(graph: PoseGraph) -> Tensor:
     poses[0] = graph.poses[0].detach().cpu().to(torch.float64).numpy()
     for k in range(n - 1):
         poses[k + 1] = poses[k] @ step[k]
+    return torch.from_numpy(poses).to(dtype=graph.poses.dtype, device=graph.poses.device)
+
+
+def spanning_tree_poses(
+    num_vertices: int, edges: np.ndarray, measurements: np.ndarray, root_pose: np.ndarray
+) -> tuple[np.ndarray, int | None]:
+    """Compose the measurements along a spanning tree of the edges, from vertex 0.
+
+    The tree grows breadth-first from vertex 0, odometry edges first: while an odometry edge
+    (|i − j| = 1, either direction) leaves the tree it is taken, otherwise the oldest other edge
+    (file order within a vertex); so every odometry chain is followed to its end before a loop
+    closure jumps elsewhere. A vertex reached through edge (i, j) gets T_j = T_i · Z_ij, or
+    T_i = T_j · Z_ij⁻¹ when the edge points back to the tree.
+
+    Args:
+        num_vertices: N.
+        edges: (E, 2) vertex indices.
+        measurements: (E, 4, 4) rigid transforms Z_ij, float64.
+        root_pose: (4, 4) pose of vertex 0.
+
+    Returns:
+        ``(poses, unreachable)``: poses (N, 4, 4), float64 (NaN for unreachable vertices), and
+        the smallest unreachable vertex index, or None when the edges connect all vertices.
+    """
+    n = num_vertices
+    pairs = edges.tolist()
+    odometry = (np.abs(edges[:, 0] - edges[:, 1]) == 1).tolist()
+    incident: list[list[int]] = [[] for _ in range(n)]
+    for e, (a, b) in enumerate(pairs):
+        incident[a].append(e)
+        if b != a:
+            incident[b].append(e)
+    parent_edge = [-1] * n
+    reached = [False] * n
+    reached[0] = True
+    order = [0]
+    queues: tuple[deque[int], deque[int]] = (deque(), deque())  # (loop closures, odometry)
+
+    def push(vertex: int) -> None:
+        for e in incident[vertex]:
+            queues[odometry[e]].append(e)
+
+    push(0)
+    while queues[0] or queues[1]:
+        e = queues[1].popleft() if queues[1] else queues[0].popleft()
+        a, b = pairs[e]
+        if reached[a] and reached[b]:
+            continue
+        vertex = b if reached[a] else a
+        reached[vertex] = True
+        parent_edge[vertex] = e
+        order.append(vertex)
+        push(vertex)
+    # Rigid inverses Z⁻¹ = [[Rᵀ, −Rᵀt], [0, 1]] for the edges walked backwards.
+    R_t = measurements[:, :3, :3].transpose(0, 2, 1)
+    inverse = np.zeros_like(measurements)
+    inverse[:, :3, :3] = R_t
+    inverse[:, :3, 3] = -(R_t @ measurements[:, :3, 3:])[..., 0]
+    inverse[:, 3, 3] = 1.0
+    poses = np.full((n, 4, 4), np.nan)
+    poses[0] = root_pose
+    for vertex in order[1:]:
+        e = parent_edge[vertex]
+        a, b = pairs[e]
+        poses[vertex] = poses[a] @ measurements[e] if vertex == b else poses[b] @ inverse[e]
+    unreachable = None if len(order) == n else reached.index(False)
+    return poses, unreachable
+
+
+def spanning_tree_initialization(graph: PoseGraph) -> Tensor:
+    """Poses from composing the measurements along a spanning tree of the edges.
+
+    The tree is grown breadth-first from vertex 0, odometry edges (index k to k ± 1) first
+    (:func:`spanning_tree_poses`); on a graph whose odometry chain is complete this is the
+    odometry chain. Edge-only g2o files get these poses as ``graph.poses``. T_0 is
+    ``graph.poses[0]``.
+
+    Args:
+        graph: the pose graph; it must be connected.
+
+    Returns:
+        Poses, shape (N, 4, 4).
+
+    Raises:
+        ValueError: when the edges do not connect every vertex to vertex 0 (naming the
+            smallest unreachable vertex id).
+    """
+    fn = "spanning_tree_initialization"
+    _check_graph(fn, graph)
+    Z = graph.measurements.detach().cpu().to(torch.float64).numpy()
+    root = graph.poses[0].detach().cpu().to(torch.float64).numpy()
+    poses, unreachable = spanning_tree_poses(graph.num_vertices, graph.edges.cpu().numpy(), Z, root)
+    if unreachable is not None:
+        ids = graph.ids.tolist()
+        raise ValueError(
+            f"{fn}: the graph is not connected: no chain of edges joins vertex id "
+            f"{ids[unreachable]} to vertex id {ids[0]}"
+        )
     return torch.from_numpy(poses).to(dtype=graph.poses.dtype, device=graph.poses.device)
 
 
