@@ -24,8 +24,6 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
-from torchslam.registration.config import check_clouds, check_poses
-from torchslam.registration.report import plane_distances
 
 if TYPE_CHECKING:
     from torchslam.data import SyntheticScene
@@ -279,6 +277,8 @@ def scan_colors(count: int) -> np.ndarray:
 
 def merged_cloud(clouds: Sequence[Tensor], poses: Tensor) -> tuple[np.ndarray, np.ndarray]:
     """All clouds moved into the common frame, with one colour per scan: (N, 3), (N, 3) uint8."""
+    from torchslam.registration.config import check_clouds, check_poses  # lazily (SciPy)
+
     clouds = check_clouds("merged_cloud", clouds)
     poses = check_poses("merged_cloud", poses, len(clouds)).to(clouds[0].dtype)
     colors = scan_colors(len(clouds))
@@ -342,6 +342,8 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
             xycoords="axes fraction",
             fontsize=9,
         )
+
+    from torchslam.registration.report import plane_distances  # lazily (SciPy)
 
     ax = axes[0, 3]
     pairs = reg.refinement.pairs
