@@ -5,8 +5,9 @@ body-i points into the world and an edge measures Z_ij ≈ T_i⁻¹ T_j (g2o's m
 information matrix in (ω, v) order. Files are read and written by :mod:`torchslam.io.g2o`.
 """
 
-from torchslam.posegraph import between, certification, initialization, objectives
-from torchslam.posegraph.certification import certify
+import importlib as _importlib
+
+from torchslam.posegraph import between, objectives
 from torchslam.posegraph.graph import GraphSource, PoseGraph
 
 __all__ = [
@@ -18,3 +19,12 @@ __all__ = [
     "initialization",
     "objectives",
 ]
+
+
+def __getattr__(name: str) -> object:
+    # The SciPy-backed modules load on first use (``import torchslam.data`` stays light).
+    if name in ("certification", "initialization"):
+        return _importlib.import_module(f"torchslam.posegraph.{name}")
+    if name == "certify":
+        return _importlib.import_module("torchslam.posegraph.certification").certify
+    raise AttributeError(f"module 'torchslam.posegraph' has no attribute {name!r}")
