@@ -39,6 +39,20 @@ from torchslam.solver import (
 
 __version__ = "0.1.0"
 
+# Subpackages and modules not imported above, read as attributes on first use (issue 17:
+# ``import torchslam as ts; ts.register`` was an AttributeError). ``register`` is the
+# deprecated shim of ``registration`` (its names warn when read).
+_LAZY = ("benchmark", "cli", "demo", "register")
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 __all__ = [
     "CauchyLoss",
     "HuberLoss",
