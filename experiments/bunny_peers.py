@@ -286,8 +286,8 @@ def summary(poses, reference, centroids, frame) -> str:
     E = se3.inverse(reference) @ poses
     rot = torch.rad2deg(torch.linalg.vector_norm(se3.log(E)[:, :3], dim=-1))[others]
     trans = torch.linalg.vector_norm(poses[:, :3, 3] - reference[:, :3, 3], dim=-1)[others]
-    moved = se3.act(poses, centroids[:, None])[:, 0]
-    truth = se3.act(reference, centroids[:, None])[:, 0]
+    moved = se3.act(poses, centroids)  # centroid i by pose i, (m, 3)
+    truth = se3.act(reference, centroids)
     cen = torch.linalg.vector_norm(moved - truth, dim=-1)[others]
     return (
         f"rot mean {float(rot.mean()):.3f}° max {float(rot.max()):.3f}°, frame origin mean "

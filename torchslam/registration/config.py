@@ -258,7 +258,7 @@ def scan_scale(
                 f"{fn}: scan {label!r}: all {len(x)} points coincide; not a scan of a surface"
             )
         probe = x[:: max(1, len(x) // sample)]
-        distance, _ = cKDTree(x).query(probe, k=2, workers=-1)
+        distance, _ = cKDTree(x).query(probe, k=2, workers=icp.query_workers())
         gaps = distance[:, 1]
         gaps = gaps[gaps > 0]
         h = float(np.median(gaps)) if len(gaps) else r

@@ -44,6 +44,7 @@ from torchslam.registration.neighbors import (
     _tree,
     estimate_normals,
     nearest_neighbors,
+    query_workers,
     voxel_downsample,
 )
 
@@ -59,6 +60,7 @@ __all__ = [
     "icp_multistart",
     "initial_guesses",
     "nearest_neighbors",
+    "query_workers",
     "register_coarse_to_fine",
     "rotations_about_axis",
     "rotations_uniform",

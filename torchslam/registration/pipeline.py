@@ -542,7 +542,7 @@ def overlapping_pairs(
     trees = [cKDTree(w) for w in world]
     overlap = np.eye(m)
     for i, k in itertools.permutations(range(m), 2):
-        d, _ = trees[k].query(world[i], distance_upper_bound=distance)
+        d, _ = trees[k].query(world[i], distance_upper_bound=distance, workers=icp.query_workers())
         overlap[i, k] = float(np.isfinite(d).mean())
     pairs = [
         (i, k)
@@ -589,7 +589,7 @@ def boundary_mask(points: Tensor, neighbors: int = 12, threshold: float = 0.3) -
             f"{fn}: argument 'points' contains non-finite values (NaN or Inf), first at point {bad}"
         )
     k = min(neighbors, points.shape[0])
-    distance, index = cKDTree(x).query(x, k=k)
+    distance, index = cKDTree(x).query(x, k=k, workers=icp.query_workers())
     local = x[index]  # (N, k, 3)
     centroid = local.mean(1)
     # Only the offset along the surface counts: on a curved surface the centroid also lies
