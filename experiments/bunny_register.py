@@ -65,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     torch.set_num_threads(args.threads)
     names = list(DEFAULT_ORDER)
-    config = registration.RegisterConfig()
+    # The chain of bunny_pairwise.py (scans in any order: experiments/bunny_peers.py).
+    config = registration.RegisterConfig(order="chain")
 
     wall, cpu = time.perf_counter(), time.process_time()
     names, clouds = registration.load_scans([data / f"{n}.ply" for n in names])
@@ -131,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         "bun.conf": relative_to_first(reference, 0),
     }
     print(f"  {'poses':<9} {'joint cost on final tracks':>27} {'point-to-plane RMS (mm)':>24}")
+    config = result.config  # voxel size resolved (derived from the scans: 2 mm)
     for label, poses in frame0.items():
         cost = registration.joint_cost(refinement, poses, config)
         rms = registration.alignment_residual(

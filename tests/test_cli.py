@@ -358,7 +358,7 @@ def test_register_without_matplotlib_writes_the_rest(no_matplotlib, tmp_path, ca
     for path, cloud in zip(paths, clouds, strict=True):
         write_ply(path, cloud)
     out = tmp_path / "out"
-    argv = ["register", *map(str, paths), "--voxel-size", "0.08", "--hypotheses", "8"]
+    argv = ["register", *map(str, paths), "--voxel-size", "0.08", "--hypotheses", "8", "--chain"]
     code, stdout, err = call([*argv, "--rounds", "1", "--out", str(out)], capsys)
     assert code == 0, err
     assert err.strip() == f"torchslam register: {SKIPPED}"

@@ -77,7 +77,9 @@ def test_read_poses_path_dtype_and_range(tmp_path):
 def test_register_config_fields_fuzzed():
     rng = random.Random(7)
     bad_values = {
-        "voxel_size": [0.0, -1.0, math.nan, math.inf, True, "0.1", None],
+        "voxel_size": [0.0, -1.0, math.nan, math.inf, True, "0.1"],  # None: derived
+        "order": ["auto", None, 1],
+        "candidates": [0, 1.5, "3"],
         "hypotheses": [0, 2.5, "8", True, math.nan],
         "stages": [[1, 2], (), "abc", 5],
         "min_overlap": [-0.1, 1.5, math.nan, "x"],
@@ -120,7 +122,7 @@ def test_register_arguments_refused_before_any_work():
         (ValueError, "'names'", lambda: reg.register(["#a", "b"], [a, a], cfg)),
         (TypeError, "'names'", lambda: reg.register([1, 2], [a, a], cfg)),
         (ValueError, "'names'", lambda: reg.register(["a"], [a, a], cfg)),
-        (TypeError, "'clouds", lambda: reg.register(["a", "b"], [a.numpy(), a.numpy()], cfg)),
+        (TypeError, "'clouds", lambda: reg.register(["a", "b"], [a.numpy(), a.numpy() > 0], cfg)),
         (TypeError, "'clouds", lambda: reg.register(["a", "b"], [a, a.float()], cfg)),
         (ValueError, "'clouds[1]'", lambda: reg.register(["a", "b"], [a, a[:, :2]], cfg)),
         (TypeError, "'clouds'", lambda: reg.register_chain(a, cfg)),

@@ -27,21 +27,27 @@ from torchslam.solver import (
 
 __version__ = "0.1.0"
 
-# Subpackages imported on first use (PEP 562), so that ``import torchslam`` costs little beyond
-# ``import torch``: ``torchslam.posegraph`` and the like work as attributes all the same.
+# Subpackages and modules imported on first use (PEP 562), so that ``import torchslam`` costs
+# little beyond ``import torch``: ``torchslam.posegraph``, ``torchslam.registration`` and the
+# like work as attributes all the same. ``register``, ``icp``, ``tracks``, ``demo`` and
+# ``terms`` are deprecated shims (their names warn when read).
 _LAZY = (
     "alignment",
+    "benchmark",
+    "cli",
     "data",
-    "icp",  # deprecated alias of registration.icp (a shim module)
+    "demo",
+    "icp",
     "initialization",
     "io",
     "jacobians",
     "manifold",
     "metrics",
     "posegraph",
+    "register",
     "registration",
     "terms",
-    "tracks",  # deprecated alias of registration.tracks (a shim module)
+    "tracks",
 )
 
 

@@ -291,7 +291,8 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     """Figure of a registration: chained pairwise ICP (row 1) vs joint ICP-SLAM (row 2).
 
     Columns: top view (x, z) and side view (x, y) of the merged downsampled cloud, coloured by
-    scan, in the axes of the reference scan (mm for scans in metres); a section, the slab
+    scan, in the axes of the reference scan (mm for scans in metres, judged by a voxel size
+    under 5 cm; otherwise the scans' units); a section, the slab
     |z − z_mid| < one voxel through the middle of the cloud, where misregistration shows as
     doubled contours; and two diagnostics: the histogram of point-to-plane distances between
     overlapping scans (chained and joint, row 1) and the change of every pose from chained to
@@ -304,7 +305,8 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
 
     reg = registration
     colors = scan_colors(len(reg.names)) / 255.0
-    scale = 1000.0  # metres → mm
+    # Scans in metres (voxels under 5 cm) are drawn in mm; others in their own units.
+    scale, mm = (1000.0, "mm") if reg.voxel_size < 0.05 else (1.0, "units")
     voxel = reg.voxel_size * scale
     rows = (
         ("chained pairwise ICP", reg.chained, reg.residual_chained),
@@ -322,7 +324,7 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
             ("top view", [(p[:, 0], p[:, 2]) for p in world], ("x", "z"), 0.25),
             ("side view", [(p[:, 0], p[:, 1]) for p in world], ("x", "y"), 0.25),
             (
-                f"section |z − {z_mid:.0f}| < {voxel:g} mm",
+                f"section |z − {z_mid:.0f}| < {voxel:g} {mm}",
                 [(p[k, 0], p[k, 1]) for p, k in zip(world, inside, strict=True)],
                 ("x", "y"),
                 2.5,
@@ -333,11 +335,11 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
             for i, (x, y) in enumerate(series):
                 ax.scatter(x, y, s=size, color=colors[i], linewidths=0, alpha=0.8)
             ax.set_aspect("equal")
-            ax.set_xlabel(f"{u} (mm)")
-            ax.set_ylabel(f"{v} (mm)")
+            ax.set_xlabel(f"{u} ({mm})")
+            ax.set_ylabel(f"{v} ({mm})")
             ax.set_title(f"{title}: {name}", fontsize=11)
         axes[row, 0].annotate(
-            f"point-to-plane RMS between overlapping scans {residual * scale:.3f} mm",
+            f"point-to-plane RMS between overlapping scans {residual * scale:.3f} {mm}",
             xy=(0.02, 0.02),
             xycoords="axes fraction",
             fontsize=9,
@@ -356,9 +358,9 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
             histtype="step",
             linewidth=1.5,
             color=color,
-            label=f"{title} (RMS {residual * scale:.3f} mm)",
+            label=f"{title} (RMS {residual * scale:.3f} {mm})",
         )
-    ax.set_xlabel("point-to-plane distance (mm)")
+    ax.set_xlabel(f"point-to-plane distance ({mm})")
     ax.set_ylabel("points")
     ax.set_title("consistency of the overlaps", fontsize=11)
     ax.legend(fontsize=8, loc="upper left")
@@ -369,7 +371,9 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     translation = torch.linalg.vector_norm(reg.poses[:, :3, 3] - reg.chained[:, :3, 3], dim=-1)
     x = np.arange(len(reg.names))
     ax.bar(x - 0.2, rotation.numpy(), 0.4, color="tab:blue", label="rotation (°)")
-    ax.bar(x + 0.2, translation.numpy() * scale, 0.4, color="tab:orange", label="translation (mm)")
+    ax.bar(
+        x + 0.2, translation.numpy() * scale, 0.4, color="tab:orange", label=f"translation ({mm})"
+    )
     ax.set_xticks(x, reg.names, rotation=60, fontsize=8)
     ax.set_title(f"pose change chained → joint (frame {reg.names[reg.frame]})", fontsize=11)
     ax.legend(fontsize=8)
@@ -380,7 +384,7 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     ]
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), frameon=False)
     fig.suptitle(
-        f"{len(reg.names)} scans ({voxel:g} mm voxels) in the frame of "
+        f"{len(reg.names)} scans ({voxel:g} {mm} voxels) in the frame of "
         f"{reg.names[reg.frame]}: chained pairwise ICP (top) vs joint ICP-SLAM (bottom)"
     )
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))

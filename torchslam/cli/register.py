@@ -1,17 +1,20 @@
 """``torchslam register``: multiview registration of PLY range scans, with outputs and a figure.
 
-Reads the scans (in chain order), runs :func:`torchslam.registration.register` with one
-progress line per stage, pair and round, and writes to ``--out``: ``poses.txt`` and
-``poses_chained.txt`` (pose files of :mod:`torchslam.io.trajectories`), ``merged.ply`` (all
-scans in the reference frame, one colour per scan) and ``registration.png`` (needs matplotlib;
-skipped with a message without it). With ``--reference`` (a Stanford ``.conf``) it also prints
-the per-scan error table of :func:`torchslam.registration.error_table`.
+Reads the scans (any order and any unit; ``--chain`` when successive scans overlap), runs
+:func:`torchslam.registration.register` with one progress line per stage, pair and round, and
+writes to ``--out``: the poses and the initial (pairwise) poses in the ``--format`` of
+:mod:`torchslam.io.trajectories` (``poses.txt``/``poses_chained.txt`` for torchslam,
+``poses_tum.txt``/``poses_chained_tum.txt`` for tum, ``poses_kitti.txt``/… for kitti),
+``merged.ply`` (all scans in the reference frame, one colour per scan) and
+``registration.png`` (needs matplotlib; skipped with a message without it). With
+``--reference`` (a Stanford ``.conf``) it also prints the per-scan error table of
+:func:`torchslam.registration.error_table`. It exits 1, after writing, when a pose is not
+finite or a joint solve failed.
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import math
 import sys
 import time
@@ -20,10 +23,10 @@ from pathlib import Path
 
 import torch
 
-from torchslam.cli import _stderr, float_range, int_range, plots, solve_exit_status
+from torchslam.cli import EXIT_FAILED, _stderr, float_range, int_range, plots, solve_exit_status
 from torchslam.io.ply import write_ply
 from torchslam.io.stanford import read_conf, scan_name, stack
-from torchslam.io.trajectories import write_poses
+from torchslam.io.trajectories import FORMATS, write_trajectory
 from torchslam.registration import icp
 from torchslam.registration.config import RegisterConfig
 from torchslam.registration.pipeline import load_scans, register
@@ -34,7 +37,18 @@ __all__ = ["add_arguments", "main", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam register``."""
-    parser.add_argument("scans", nargs="+", type=Path, help="PLY scans in chain order (≥ 2)")
+    parser.add_argument("scans", nargs="+", type=Path, help="PLY scans, any order (≥ 2)")
+    parser.add_argument(
+        "--chain",
+        action="store_true",
+        help="the scans are in chain order (successive ones overlap): register along it",
+    )
+    parser.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="torchslam",
+        help="pose file format: torchslam (name tx ty tz qw qx qy qz), tum, kitti (torchslam)",
+    )
     parser.add_argument(
         "--reference", type=Path, default=None, help="Stanford .conf alignment to compare with"
     )
@@ -45,8 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--voxel-size",
         type=float_range(0.0, 1e6, low_open=True),
-        default=0.002,
-        help="finest voxel pitch, scan units (0, 1e6] (0.002)",
+        default=None,
+        help="finest voxel pitch, scan units (0, 1e6] (default: from the scans' spacing/size)",
     )
     parser.add_argument(
         "--hypotheses", type=int_range(1, 10_000), default=128, help="starts per pair (128)"
@@ -75,7 +89,7 @@ def run(
     """
     if args.threads < 1:
         raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
-    if not (args.voxel_size > 0 and math.isfinite(args.voxel_size)):
+    if args.voxel_size is not None and not (args.voxel_size > 0 and math.isfinite(args.voxel_size)):
         raise ValueError(f"--voxel-size must be > 0, got {args.voxel_size}")
     if args.hypotheses < 1:
         raise ValueError(f"--hypotheses must be ≥ 1, got {args.hypotheses}")
@@ -90,7 +104,10 @@ def run(
     if args.out.exists() and not args.out.is_dir():
         raise ValueError(f"--out {args.out} exists and is not a directory")
     config = RegisterConfig(
-        voxel_size=args.voxel_size, hypotheses=args.hypotheses, rounds=args.rounds
+        voxel_size=args.voxel_size,
+        hypotheses=args.hypotheses,
+        rounds=args.rounds,
+        order="chain" if getattr(args, "chain", False) else "any",
     )
     threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
@@ -127,18 +144,29 @@ def _run(
         echo(f"{prefix} {line}")
 
     registration = register(names, clouds, config, frame=frame, progress=progress)
+    bad = [
+        n
+        for n, T, T0 in zip(names, registration.poses, registration.chained, strict=True)
+        if not (torch.isfinite(T).all() and torch.isfinite(T0).all())
+    ]
+    if bad:
+        warn(f"error: non-finite pose for scan(s) {', '.join(bad)}; nothing written")
+        return EXIT_FAILED
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     echo(f"[5/5] writing {out} …")
-    write_poses(out / "poses.txt", names, registration.poses, frame=frame)
-    write_poses(out / "poses_chained.txt", names, registration.chained, frame=frame)
+    format = getattr(args, "format", "torchslam")
+    suffix = "" if format == "torchslam" else f"_{format}"
+    written = [f"poses{suffix}.txt", f"poses_chained{suffix}.txt"]
+    for file, poses in zip(written, (registration.poses, registration.chained), strict=True):
+        write_trajectory(out / file, poses, format, names=names, frame=frame)
     points, colors = plots.merged_cloud(registration.clouds, registration.poses)
     legend = [
         f"scan {n} rgb {' '.join(map(str, c))}"
         for n, c in zip(names, plots.scan_colors(len(names)), strict=True)
     ]
     write_ply(out / "merged.ply", points, colors, coordinate_type="float", comments=legend)
-    written = ["poses.txt", "poses_chained.txt", f"merged.ply ({len(points)} points)"]
+    written.append(f"merged.ply ({len(points)} points)")
     try:
         plots.plot_registration(registration, out / "registration.png")
     except plots.MatplotlibMissingError as error:
@@ -158,14 +186,17 @@ def _run(
             reference_poses,
             {"chain": registration.chained, "joint": registration.poses},
         )
-        echo(f"errors vs {args.reference} in the frame of {frame} (mm assumes metres):")
+        echo(
+            f"errors vs {args.reference} in the frame of {frame} (translation × 1000: mm for "
+            "scans in metres):"
+        )
         echo(text)
     echo(f"total {time.perf_counter() - start:.1f} s")
-    for pair, result in zip(
-        itertools.pairwise(names), registration.chain.pair_results, strict=True
+    for (a, b), result in zip(
+        registration.chain.tree_edges, registration.chain.pair_results, strict=True
     ):
         if int(result.status) == icp.ICPStatus.TOO_FEW_CORRESPONDENCES:
-            warn(f"warning: pairwise ICP {pair[0]} ← {pair[1]}: {result.reason}")
+            warn(f"warning: pairwise ICP {names[a]} ← {names[b]}: {result.reason}")
     statuses = [info.status for info in registration.refinement.rounds]
     return solve_exit_status(statuses, warn, "a joint solve")
 

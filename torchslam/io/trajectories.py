@@ -1,4 +1,16 @@
-"""Trajectory files: the pose file of ``torchslam register`` (and of :func:`write_poses`).
+"""Trajectory files: the pose file of ``torchslam register`` (:func:`write_poses`), and the
+TUM and KITTI trajectory formats that evo (``evo_traj``, ``evo_ape``) and most SLAM tools read
+(:func:`write_trajectory`, :func:`read_trajectory`).
+
+Every format holds the same poses T_0i (frame i → world/reference frame, p_world = R p_i + t;
+the solver's :class:`~torchslam.PointMapProblem` poses are their inverses T_i0) and states its
+convention in its header (comment lines starting with ``#``, which evo skips):
+
+- ``torchslam``: ``name tx ty tz qw qx qy qz`` (below);
+- ``tum``: ``timestamp tx ty tz qx qy qz qw`` (TUM RGB-D: quaternion scalar *last*); scans
+  without times get their index 0, 1, 2, … as timestamp, the names go in the header;
+- ``kitti``: 12 numbers, the first three rows of T_0i row-major (KITTI odometry: the pose of
+  camera i in the frame of camera 0).
 
 Pose convention: each line holds T_0i, the pose of frame (scan) i in the world frame, i.e. the
 frame → world transform T_0i = [[R(q), t], [0, 1]] that maps the scan's coordinates into the
@@ -16,6 +28,7 @@ reference frame). Names are single words without white space.
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,7 +41,10 @@ from torchslam import _checks
 from torchslam.io import _text
 from torchslam.lie import convert, se3
 
-__all__ = ["read_poses", "write_poses"]
+__all__ = ["FORMATS", "read_poses", "read_trajectory", "write_poses", "write_trajectory"]
+
+# Trajectory formats of write_trajectory / read_trajectory (and of ``torchslam register --format``)
+FORMATS = ("torchslam", "tum", "kitti")
 
 
 def write_poses(
@@ -128,3 +144,167 @@ def read_poses(
     values_t = torch.tensor(rows, dtype=dtype)
     R = convert.quaternion_to_matrix(values_t[:, 3:])
     return names, se3.from_rotation_translation(R, values_t[:, :3])
+
+
+def _check_format(fn: str, format: object) -> str:
+    if not isinstance(format, str) or format not in FORMATS:
+        raise ValueError(
+            f"{fn}: argument 'format' must be one of {', '.join(map(repr, FORMATS))}, "
+            f"got {_checks.describe(format)}"
+        )
+    return format
+
+
+def write_trajectory(
+    path: str | os.PathLike,
+    poses: Tensor,
+    format: str = "tum",
+    *,
+    names: Sequence[str] | None = None,
+    timestamps: Sequence[float] | Tensor | np.ndarray | None = None,
+    frame: str | None = None,
+) -> None:
+    """Write poses T_0i (frame i → world) as a trajectory file evo and SLAM tools read.
+
+    Args:
+        path: output file.
+        poses: T_0i, shape (m, 4, 4), rigid and finite (a tensor or a numpy array).
+        format: ``"tum"`` (``timestamp tx ty tz qx qy qz qw``), ``"kitti"`` (3×4 row-major)
+            or ``"torchslam"`` (:func:`write_poses`; needs ``names``).
+        names: scan names (listed in the header of tum/kitti files; required for torchslam).
+        timestamps: m finite times, increasing (tum only; default 0, 1, …, m − 1).
+        frame: name of the world/reference frame, for the header.
+
+    The header (``#`` lines) states the convention: which frame maps into which, the
+    quaternion order, the units (those of the poses' translations).
+
+    Raises:
+        TypeError, ValueError: bad arguments (messages name the argument).
+    """
+    fn = "write_trajectory"
+    path = _checks.check_path(fn, path)
+    format = _check_format(fn, format)
+    if isinstance(poses, np.ndarray):
+        poses = torch.from_numpy(np.ascontiguousarray(poses))
+    _checks.check_batched(fn, "poses", poses, ("m",), (4, 4))
+    _checks.check_pose_matrix(fn, "poses", poses)
+    m = poses.shape[0]
+    if m == 0:
+        raise ValueError(f"{fn}: argument 'poses' must hold at least one pose, got none")
+    if names is not None:
+        names = _checks.check_names(fn, names, count=m)
+    if format == "torchslam":
+        if names is None:
+            raise ValueError(f"{fn}: format 'torchslam' needs 'names' (one per pose)")
+        write_poses(path, names, poses, frame=frame)
+        return
+    if timestamps is not None and format != "tum":
+        raise ValueError(f"{fn}: 'timestamps' are for format 'tum' only, got format {format!r}")
+    if timestamps is None:
+        times = [float(k) for k in range(m)]
+    else:
+        array = np.asarray(
+            timestamps.detach().cpu() if isinstance(timestamps, Tensor) else timestamps
+        )
+        if array.shape != (m,) or array.dtype.kind not in "fiu":
+            raise ValueError(
+                f"{fn}: argument 'timestamps' must hold {m} numbers (one per pose), got "
+                f"shape {array.shape} of {array.dtype}"
+            )
+        times = [float(t) for t in array]
+        if not all(np.isfinite(times)) or any(b <= a for a, b in itertools.pairwise(times)):
+            raise ValueError(f"{fn}: argument 'timestamps' must be finite and increasing")
+    T = poses.detach().to(torch.float64).cpu()
+    reference = frame or (names[0] if names else "frame 0")
+    header = [f"# torchslam trajectory, {format.upper()} format"]
+    if format == "tum":
+        q = convert.matrix_to_quaternion(T[:, :3, :3])
+        q = torch.where(q[:, :1] < 0, -q, q)  # qw ≥ 0
+        header += [
+            "# timestamp tx ty tz qx qy qz qw: pose T_0i of frame i in the world frame "
+            f"({reference}), p_world = R(q) p_i + t; Hamilton quaternion, scalar LAST",
+        ]
+        rows = [
+            [t, *T[k, :3, 3].tolist(), *q[k, 1:].tolist(), float(q[k, 0])]
+            for k, t in enumerate(times)
+        ]
+    else:
+        header += [
+            "# r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz: first three rows of T_0i "
+            f"(row-major), frame i → world frame ({reference}), p_world = R p_i + t",
+        ]
+        rows = [T[k, :3, :].reshape(-1).tolist() for k in range(m)]
+    if names is not None:
+        header.append("# frames in order: " + " ".join(names))
+    lines = [*header, *(" ".join(repr(float(x)) for x in row) for row in rows)]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_trajectory(
+    path: str | os.PathLike, format: str = "tum", *, dtype: torch.dtype = torch.float64
+) -> tuple[Tensor, list[str] | None, Tensor | None]:
+    """Read a trajectory file: ``(T_0i (m, 4, 4), names or None, timestamps (m,) or None)``.
+
+    ``names`` come from a torchslam file or the ``# frames in order:`` header line of a
+    file written by :func:`write_trajectory`; ``timestamps`` from a TUM file. KITTI rotations
+    are projected onto SO(3) (files carry ~9 digits); TUM quaternions are normalized.
+
+    Raises:
+        ValueError: a malformed line (field count, a number that is not finite, a zero
+            quaternion, a KITTI matrix that is not a rotation to 1e-4), no poses; messages
+            name the file and the line.
+        TypeError, OSError: as :func:`read_poses`.
+    """
+    fn = "read_trajectory"
+    format = _check_format(fn, format)
+    if format == "torchslam":
+        names, poses = read_poses(path, dtype=dtype)
+        return poses, names, None
+    where = _checks.check_path(fn, path, is_file=True)
+    _checks.check_float_dtype(fn, dtype)
+    with open(where, "rb") as f:
+        lines = _text.decode_lines(f.read(), path, fn, "text trajectory file")
+    width = 8 if format == "tum" else 12
+    names: list[str] | None = None
+    rows: list[list[float]] = []
+    for number, raw in enumerate(lines, start=1):
+        words = raw.split()
+        if not words:
+            continue
+        if words[0].startswith("#"):
+            text = raw.strip().lstrip("#").strip()
+            if text.startswith("frames in order:"):
+                names = text[len("frames in order:") :].split()
+            continue
+        if len(words) != width:
+            raise ValueError(
+                f"{fn}: {where}: line {number}: expected {width} numbers ({format} format), "
+                f"got {len(words)} fields"
+            )
+        try:
+            values = [_text.parse_finite_float(v) for v in words]
+            if format == "tum":
+                qx, qy, qz, qw = values[4:]
+                values[4:] = _text.unit_quaternion([qw, qx, qy, qz], "quaternion (qx qy qz qw)")
+        except _text.TokenError as error:
+            raise ValueError(f"{fn}: {where}: line {number}: {error}") from None
+        if format == "kitti":
+            R = np.array(values, dtype=np.float64).reshape(3, 4)[:, :3]
+            if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+                raise ValueError(
+                    f"{fn}: {where}: line {number}: the 3×3 block is not a rotation matrix"
+                )
+        rows.append(values)
+    if not rows:
+        raise ValueError(f"{fn}: {where}: no poses")
+    if names is not None and len(names) != len(rows):
+        names = None  # a header that does not match the poses is ignored
+    table = torch.tensor(rows, dtype=torch.float64)
+    if format == "tum":
+        R = convert.quaternion_to_matrix(table[:, 4:])  # (w, x, y, z) after the rewrite
+        poses = se3.from_rotation_translation(R, table[:, 1:4])
+        return poses.to(dtype), names, table[:, 0].to(dtype)
+    M = table.reshape(-1, 3, 4)
+    U, _, Vh = torch.linalg.svd(M[:, :, :3])
+    R = U @ Vh
+    return se3.from_rotation_translation(R, M[:, :, 3]).to(dtype), names, None

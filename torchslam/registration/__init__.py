@@ -7,16 +7,30 @@ Modules, from the ground up:
   multistart, coarse to fine, pose chaining;
 - :mod:`~torchslam.registration.tracks`: point tracks across scans (the data association);
 - :mod:`~torchslam.registration.config`: :class:`RegisterConfig`, :func:`default_stages`;
-- :mod:`~torchslam.registration.pipeline`: :func:`register` (pairwise chain, overlapping
-  pairs, joint ICP-SLAM refinement) and its steps;
-- :mod:`~torchslam.registration.report`: consistency residuals and error tables.
+- :mod:`~torchslam.registration.pipeline`: :func:`register` (scans in any order and unit:
+  pairwise alignment of all pairs and their spanning tree, or a chain; overlapping pairs;
+  joint ICP-SLAM refinement) and its steps;
+- :mod:`~torchslam.registration.report`: consistency residuals and error tables;
+- :mod:`~torchslam.registration.conventions`: checks that detect inverted pose sets.
 
 Pose files are in :mod:`torchslam.io.trajectories`; the command ``torchslam register`` and
 its figure in :mod:`torchslam.cli.register` and :mod:`torchslam.cli.plots`.
 """
 
-from torchslam.registration import config, icp, neighbors, pipeline, report, tracks
-from torchslam.registration.config import RegisterConfig, default_stages
+from torchslam.registration import config, conventions, icp, neighbors, pipeline, report, tracks
+from torchslam.registration.config import (
+    RegisterConfig,
+    ScanScale,
+    auto_voxel_size,
+    default_stages,
+    scan_scale,
+)
+from torchslam.registration.conventions import (
+    InvertedPosesWarning,
+    PoseDirectionCheck,
+    check_problem_poses,
+    check_scan_poses,
+)
 from torchslam.registration.pipeline import (
     ChainResult,
     RefineResult,
@@ -30,18 +44,26 @@ from torchslam.registration.pipeline import (
     refine,
     register,
     register_chain,
+    register_tree,
 )
 from torchslam.registration.report import alignment_residual, error_table, plane_distances
 
 __all__ = [
     "ChainResult",
+    "InvertedPosesWarning",
+    "PoseDirectionCheck",
     "RefineResult",
     "RegisterConfig",
     "Registration",
     "RoundInfo",
+    "ScanScale",
     "alignment_residual",
+    "auto_voxel_size",
     "boundary_mask",
+    "check_problem_poses",
+    "check_scan_poses",
     "config",
+    "conventions",
     "default_stages",
     "error_table",
     "icp",
@@ -55,6 +77,8 @@ __all__ = [
     "refine",
     "register",
     "register_chain",
+    "register_tree",
     "report",
+    "scan_scale",
     "tracks",
 ]

@@ -22,8 +22,10 @@ importable from here.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -33,13 +35,16 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.alignment import weighted_kabsch
 from torchslam.lie import convert, se3, so3
+from torchslam.losses import CauchyLoss, HuberLoss, TukeyLoss
 from torchslam.registration.neighbors import (
+    _WORKERS,
     _downsample,
     _normals,
     _query,
     _tree,
     estimate_normals,
     nearest_neighbors,
+    query_workers,
     voxel_downsample,
 )
 
@@ -55,6 +60,7 @@ __all__ = [
     "icp_multistart",
     "initial_guesses",
     "nearest_neighbors",
+    "query_workers",
     "register_coarse_to_fine",
     "rotations_about_axis",
     "rotations_uniform",
@@ -90,6 +96,17 @@ class ICPConfig:
     trim_fraction: float = 1.0
     # fewer inlier correspondences than this stops the iteration with a failure status
     min_correspondences: int = 6
+    # also converged when an update turns by less than this (degrees) and moves the source
+    # centroid by less than translation_tolerance; None: only the RMS test. Saves the pass
+    # that would confirm the RMS no longer falls (the statistics are those before the step).
+    rotation_tolerance_deg: float | None = None
+    translation_tolerance: float | None = None
+    # robust kernel on the kept correspondences (iteratively reweighted least squares, besides
+    # the trimming): "none", "huber", "cauchy" or "tukey" (:mod:`torchslam.losses`), on the
+    # point-to-plane distance (point_to_plane) or the point distance (point_to_point)
+    kernel: Literal["none", "huber", "cauchy", "tukey"] = "none"
+    # its scale, in the clouds' units; None: the inlier RMS of the iteration (scale-free)
+    kernel_scale: float | None = None
 
     def __post_init__(self) -> None:
         fn = "ICPConfig"
@@ -117,6 +134,36 @@ class ICPConfig:
             fn, "trim_fraction", self.trim_fraction, low=0.0, low_open=True, high=1.0
         )
         _checks.check_int(fn, "min_correspondences", self.min_correspondences, minimum=3)
+        for name in ("rotation_tolerance_deg", "translation_tolerance"):
+            if getattr(self, name) is not None:
+                _checks.check_real(fn, name, getattr(self, name), low=0.0)
+        if (self.rotation_tolerance_deg is None) != (self.translation_tolerance is None):
+            raise ValueError(
+                f"{fn}: give both 'rotation_tolerance_deg' and 'translation_tolerance' or neither"
+            )
+        if not isinstance(self.kernel, str) or self.kernel not in _KERNELS:
+            raise ValueError(
+                f"{fn}: argument 'kernel' must be one of {', '.join(map(repr, _KERNELS))}, "
+                f"got {_checks.describe(self.kernel)}"
+            )
+        if self.kernel_scale is not None:
+            _checks.check_real(fn, "kernel_scale", self.kernel_scale, low=0.0, low_open=True)
+
+
+_KERNELS = ("none", "huber", "cauchy", "tukey")
+
+
+def _kernel_weights(kernel: str, residual: Tensor, scale: Tensor) -> Tensor:
+    """IRLS weights ρ'(r²) of a robust kernel, residual (B, N), scale (B,) > 0."""
+    s = residual * residual
+    if kernel == "huber":
+        loss: object = HuberLoss(scale)
+    elif kernel == "cauchy":
+        loss = CauchyLoss(scale)
+    else:
+        loss = TukeyLoss(scale)
+    _, rho1, _ = loss(s)  # type: ignore[operator]
+    return rho1
 
 
 class ICPStatus(enum.IntEnum):
@@ -302,14 +349,19 @@ def _inlier_mask(distance: Tensor, gate: Tensor, trim_fraction: float) -> Tensor
     if trim_fraction >= 1.0:
         return gated
     masked = torch.where(gated, distance, torch.full_like(distance, math.inf))
-    ordered, _ = masked.sort(dim=-1)
     keep = torch.ceil(gated.sum(-1).to(distance.dtype) * trim_fraction).to(torch.int64)
     position = (keep - 1).clamp_min(0)
-    threshold = ordered.gather(-1, position[:, None])
+    if distance.shape[0] == 1:  # one run: a selection, O(N), instead of a sort
+        threshold = torch.kthvalue(masked, int(position[0]) + 1, dim=-1, keepdim=True).values
+    else:
+        ordered, _ = masked.sort(dim=-1)
+        threshold = ordered.gather(-1, position[:, None])
     return gated & (distance <= threshold) & (keep[:, None] > 0)
 
 
-def _point_to_plane_step(moved: Tensor, matched: Tensor, normals: Tensor, mask: Tensor) -> Tensor:
+def _point_to_plane_step(
+    moved: Tensor, matched: Tensor, normals: Tensor, mask: Tensor, weights: Tensor | None = None
+) -> Tensor:
     """Increment ΔT minimizing Σ (n · (ΔT p − q))² to first order over the kept pairs, (B, 4, 4).
 
     ΔT = exp(δ) about the centroid c of the kept points (for conditioning), δ = (ω, v): with
@@ -319,6 +371,8 @@ def _point_to_plane_step(moved: Tensor, matched: Tensor, normals: Tensor, mask: 
     w = mask.to(moved.dtype)[..., None]
     count = w.sum(-2).clamp_min(1.0)  # (B, 1)
     centroid = (w * moved).sum(-2) / count  # (B, 3)
+    if weights is not None:
+        w = torch.where(mask, weights, torch.zeros_like(weights))[..., None]
     arm = moved - centroid[:, None]
     residual = ((moved - matched) * normals).sum(-1, keepdim=True)
     J = torch.cat((torch.linalg.cross(arm, normals), normals), dim=-1)  # (B, N, 6)
@@ -383,8 +437,27 @@ def _run(
         empty = source.new_zeros(0)
         none = torch.zeros(0, dtype=torch.int64)
         return ICPResult(initial.clone(), empty, empty, empty, none, none, source.new_zeros(1, 0))
-    with _checks.validation(False):
+    with _checks.validation(False), _host_threads():
         return _icp_loop(fn, source, target, initial, config, target_normals)
+
+
+@contextlib.contextmanager
+def _host_threads() -> Iterator[None]:
+    """The KD-tree queries get the caller's torch threads (:func:`query_workers`), the small
+    per-iteration tensor algebra one thread: spread over threads that other processes keep
+    busy, its OpenMP regions cost far more than they compute (ICP went 4× slower with 2
+    threads than with 1 on a shared 2-core machine). The thread count is restored on exit."""
+    threads = torch.get_num_threads()
+    if threads == 1:
+        yield
+        return
+    _WORKERS.append(threads)
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+        _WORKERS.pop()
 
 
 def _icp_loop(
@@ -395,6 +468,10 @@ def _icp_loop(
     config: ICPConfig,
     target_normals: Tensor | None,
 ) -> ICPResult:
+    """One pass per iteration: a KD-tree query (on :func:`query_workers` threads) for the
+    runs still going, their inlier statistics, the stop tests and the update. A run that
+    stops keeps the correspondences of its last pass (its final statistics need no extra
+    query)."""
     batch = initial.shape[0]
     n = source.shape[0]
     tree = _tree(fn, "target", target)
@@ -404,58 +481,104 @@ def _icp_loop(
     status = torch.full((batch,), int(ICPStatus.RUNNING), dtype=torch.int64)
     iterations = torch.zeros(batch, dtype=torch.int64)
     previous_rms = source.new_full((batch,), math.inf)
+    rms_all = source.new_zeros(batch)
+    count_all = torch.zeros(batch, dtype=torch.int64)
     history: list[Tensor] = []
     zero = source.new_zeros(())
+    rows = torch.arange(batch)
 
-    def correspondences(T: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        moved = _move(T, source)
-        bound = float(gate.max()) if bool(torch.isfinite(gate).all()) else None
+    while True:
+        # Correspondences of the runs still going (rows), at their current transforms.
+        T_rows, gate_rows = T[rows], gate[rows]
+        moved = _move(T_rows, source)
+        bound = float(gate_rows.max()) if bool(torch.isfinite(gate_rows).all()) else None
         distance, index = _query(tree, moved, bound, fn=fn, name="source")
-        mask = _inlier_mask(distance, gate, config.trim_fraction)
+        mask = _inlier_mask(distance, gate_rows, config.trim_fraction)
         count = mask.sum(-1)
         squared = torch.where(mask, distance, zero) ** 2
         rms = torch.sqrt(squared.sum(-1) / count.clamp_min(1).to(source.dtype))
-        return moved, index, mask, rms
-
-    while True:
-        moved, index, mask, rms = correspondences(T, gate)
-        count = mask.sum(-1)
-        history.append(rms)
-        running = status == ICPStatus.RUNNING
-        few = running & (count < config.min_correspondences)
-        status[few] = int(ICPStatus.TOO_FEW_CORRESPONDENCES)
+        rms_all[rows] = rms
+        count_all[rows] = count
+        history.append(rms_all.clone())
+        # Stop tests (every row here is running).
+        few = count < config.min_correspondences
         # Signed: an RMS that went up (noise floor, a flip of the trimmed set) also stops.
-        decrease = previous_rms - rms
-        settled = torch.isfinite(previous_rms) & (
-            decrease <= config.relative_tolerance * previous_rms
+        previous = previous_rms[rows]
+        settled = torch.isfinite(previous) & (
+            previous - rms <= config.relative_tolerance * previous
         )
         # An exact fit (rms = 0) needs no update.
-        settled = running & ~few & (settled | (rms == 0))
-        status[settled] = int(ICPStatus.CONVERGED)
-        capped = (status == ICPStatus.RUNNING) & (iterations >= config.max_iterations)
-        status[capped] = int(ICPStatus.MAX_ITERATIONS)
-        active = status == ICPStatus.RUNNING
-        if not bool(active.any()):
+        settled = ~few & (settled | (rms == 0))
+        capped = ~few & ~settled & (iterations[rows] >= config.max_iterations)
+        code = torch.full_like(rows, int(ICPStatus.RUNNING))
+        code[few] = int(ICPStatus.TOO_FEW_CORRESPONDENCES)
+        code[settled] = int(ICPStatus.CONVERGED)
+        code[capped] = int(ICPStatus.MAX_ITERATIONS)
+        status[rows] = code
+        go = code == int(ICPStatus.RUNNING)
+        if not bool(go.any()):
             break
+        if not bool(go.all()):
+            rows, T_rows, gate_rows = rows[go], T_rows[go], gate_rows[go]
+            moved, distance, index = moved[go], distance[go], index[go]
+            mask, rms = mask[go], rms[go]
         safe_index = index.clamp_min(0)
         matched = target[safe_index]  # (B, N, 3); unmatched rows are masked out
+        weights = None
         if config.method == "point_to_point":
+            if config.kernel != "none":
+                weights = _kernel_weights(
+                    config.kernel, distance.nan_to_num(posinf=0.0), _scale(config, rms)
+                )
             # Absolute solve from the original source: no drift from composing increments.
-            T_new = weighted_kabsch(source.expand(batch, n, 3), matched, mask=mask)
+            T_new = weighted_kabsch(
+                source.expand(len(rows), n, 3), matched, weights=weights, mask=mask
+            )
         else:
             assert target_normals is not None
-            step = _point_to_plane_step(moved, matched, target_normals[safe_index], mask)
-            T_new = se3.compose(step, T)
-        T = torch.where(active[:, None, None], T_new, T)
-        iterations += active.to(torch.int64)
-        previous_rms = torch.where(active, rms, previous_rms)
+            normals = target_normals[safe_index]
+            if config.kernel != "none":
+                plane = ((moved - matched) * normals).sum(-1)
+                weights = _kernel_weights(config.kernel, plane, _scale(config, rms))
+            step = _point_to_plane_step(moved, matched, normals, mask, weights)
+            T_new = se3.compose(step, T_rows)
+        T[rows] = T_new
+        iterations[rows] += 1
+        previous_rms[rows] = rms
         if config.gate_scale is not None:
             shrunk = torch.clamp(config.gate_scale * rms, min=config.min_distance)
-            gate = torch.where(active, torch.minimum(gate, shrunk), gate)
+            gate[rows] = torch.minimum(gate_rows, shrunk)
+        if config.rotation_tolerance_deg is not None:
+            small = _small_steps(T_rows, T_new, source.mean(0), config)
+            if bool(small.any()):
+                status[rows[small]] = int(ICPStatus.CONVERGED)
+                rows = rows[~small]
+                if rows.numel() == 0:
+                    break
 
-    _, _, mask, rms = correspondences(T, gate)
-    fitness = mask.sum(-1).to(source.dtype) / n
-    return ICPResult(T, rms, fitness, gate, iterations, status, torch.stack(history))
+    fitness = count_all.to(source.dtype) / n
+    return ICPResult(T, rms_all, fitness, gate, iterations, status, torch.stack(history))
+
+
+def _small_steps(before: Tensor, after: Tensor, centroid: Tensor, config: ICPConfig) -> Tensor:
+    """Updates below the step tolerances: rotation angle and motion of the source centroid."""
+    delta = after @ se3.inverse(before)
+    cos = ((delta[:, 0, 0] + delta[:, 1, 1] + delta[:, 2, 2] - 1) / 2).clamp(-1.0, 1.0)
+    angle = torch.rad2deg(torch.acos(cos))
+    moved = before[:, :3, :3] @ centroid + before[:, :3, 3]
+    shift = torch.linalg.vector_norm(
+        (delta[:, :3, :3] @ moved[..., None]).squeeze(-1) + delta[:, :3, 3] - moved, dim=-1
+    )
+    assert config.rotation_tolerance_deg is not None and config.translation_tolerance is not None
+    return (angle <= config.rotation_tolerance_deg) & (shift <= config.translation_tolerance)
+
+
+def _scale(config: ICPConfig, rms: Tensor) -> Tensor:
+    """The kernel scale per run: ``config.kernel_scale`` or the inlier RMS (kept > 0)."""
+    if config.kernel_scale is not None:
+        return torch.full_like(rms, config.kernel_scale)
+    tiny = torch.finfo(rms.dtype).tiny ** 0.5
+    return rms.clamp_min(tiny)
 
 
 def icp(

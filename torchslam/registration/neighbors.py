@@ -2,8 +2,9 @@
 
 The preprocessing that ICP (:mod:`torchslam.registration.icp`), the point tracks
 (:mod:`torchslam.registration.tracks`) and the multiview pipeline share. Neighbour queries run
-on the host with scipy's KD-tree (never an O(N·M) distance matrix); they are not meant for
-jacrev or vmap. Clouds are (N, 3) torch tensors or numpy arrays (float32/float64), in any
+on the host with scipy's KD-tree (never an O(N·M) distance matrix), on
+``torch.get_num_threads()`` threads (:func:`query_workers`); they are not meant for jacrev or
+vmap. Clouds are (N, 3) torch tensors or numpy arrays (float32/float64), in any
 frame: nothing here knows about poses.
 """
 
@@ -18,7 +19,7 @@ from torch import Tensor
 
 from torchslam import _checks
 
-__all__ = ["estimate_normals", "nearest_neighbors", "voxel_downsample"]
+__all__ = ["estimate_normals", "nearest_neighbors", "query_workers", "voxel_downsample"]
 
 
 def voxel_downsample(points: Tensor, voxel_size: float) -> Tensor:
@@ -92,7 +93,21 @@ def _host(fn: str, name: str, points: Tensor) -> np.ndarray:
 
 
 def _tree(fn: str, name: str, points: Tensor) -> cKDTree:
-    return cKDTree(_host(fn, name, points))
+    # Sliding-midpoint splits (balanced_tree=False) without node shrinking build about twice
+    # as fast as the median splits and answer the ICP queries faster on scan data; the
+    # answers are the same exact nearest neighbours.
+    return cKDTree(_host(fn, name, points), balanced_tree=False, compact_nodes=False)
+
+
+# Thread counts of the callers that run their tensor algebra on one thread (innermost last).
+_WORKERS: list[int] = []
+
+
+def query_workers() -> int:
+    """Threads of the KD-tree queries: ``torch.get_num_threads()`` (of the caller, where ICP
+    runs its own algebra on one thread), so that one setting (``torch.set_num_threads``,
+    ``--threads``) governs the whole front end."""
+    return _WORKERS[-1] if _WORKERS else max(1, torch.get_num_threads())
 
 
 def nearest_neighbors(
@@ -137,7 +152,7 @@ def _query(
     about non-finite query points (moved clouds whose coordinates overflowed)."""
     flat = _host(fn, name, query)
     bound = np.inf if max_distance is None else float(max_distance)
-    distance, index = tree.query(flat, k=k, distance_upper_bound=bound)
+    distance, index = tree.query(flat, k=k, distance_upper_bound=bound, workers=query_workers())
     index = np.where(np.isfinite(distance), index, -1)
     shape = (*query.shape[:-1], k) if k > 1 else query.shape[:-1]
     distance_t = torch.from_numpy(np.asarray(distance)).to(query.dtype).reshape(shape)

@@ -47,7 +47,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -60,7 +60,15 @@ from torchslam.io.stanford import relative_to_first, scan_name
 from torchslam.lie import se3
 from torchslam.problem import PointMapProblem
 from torchslam.registration import icp
-from torchslam.registration.config import RegisterConfig, check_clouds, check_config, check_poses
+from torchslam.registration.config import (
+    RegisterConfig,
+    ScanScale,
+    auto_voxel_size,
+    check_clouds,
+    check_config,
+    check_poses,
+    scan_scale,
+)
 from torchslam.registration.report import alignment_residual
 from torchslam.registration.tracks import Tracks, build_tracks
 from torchslam.solver import SolverConfig, Status, solve
@@ -79,6 +87,7 @@ __all__ = [
     "refine",
     "register",
     "register_chain",
+    "register_tree",
 ]
 
 Progress = Callable[[str], None]
@@ -147,16 +156,34 @@ def load_scans(
 
 @dataclass
 class ChainResult:
-    """Pairwise ICP between successive scans and the chained poses."""
+    """Pairwise ICP along a chain or a spanning tree of the scans, and the chained poses.
 
-    # T̂_(k,k+1) mapping scan k+1 into scan k, shape (m − 1, 4, 4)
+    For a chain (``register_chain``) edge k is (k, k + 1); for scans in any order
+    (:func:`register_tree`) the edges of the maximum spanning tree, parent first.
+    """
+
+    # T̂_(p,c) mapping scan c into scan p for each edge (p, c), shape (m − 1, 4, 4)
     relative: Tensor
-    # T̂_0i = T̂_01 ⋯ T̂_(i−1,i) mapping scan i into scan 0, shape (m, 4, 4)
+    # T̂_0i: the relative poses composed from scan 0 to scan i, mapping scan i into scan 0,
+    # shape (m, 4, 4)
     poses: Tensor
-    # per pair: the ICP result of the last level (fitness/rms at its yardstick distance)
+    # per edge: the ICP result of the last level (fitness/rms at its yardstick distance)
     pair_results: list[icp.ICPResult]
-    # per pair: wall seconds
+    # per edge: wall seconds
     pair_seconds: list[float]
+    # the edges (parent, child); None means the chain (k, k + 1)
+    edges: list[tuple[int, int]] | None = None
+    # order "any": symmetric overlap score of every pair after the coarse level, (m, m), and
+    # after the fine levels for the candidate pairs (nan where not registered finely)
+    coarse_score: Tensor | None = None
+    fine_score: Tensor | None = None
+
+    @property
+    def tree_edges(self) -> list[tuple[int, int]]:
+        """The edges (parent, child): the chain's (k, k + 1) or the spanning tree's."""
+        if self.edges is not None:
+            return list(self.edges)
+        return [(k, k + 1) for k in range(self.relative.shape[0])]
 
 
 def register_chain(
@@ -178,7 +205,7 @@ def register_chain(
     """
     fn = "register_chain"
     clouds = check_clouds(fn, clouds, minimum=2, min_points=3)
-    config = check_config(fn, config)
+    config = check_config(fn, config).resolved(clouds, fn)
     if names is not None:
         names = _checks.check_names(fn, names, count=len(clouds), words=False)
     if progress is not None and not callable(progress):
@@ -204,6 +231,283 @@ def register_chain(
             )
     relative_t = torch.stack(relative)
     return ChainResult(relative_t, icp.chain_poses(relative_t), results, seconds)
+
+
+def register_tree(
+    clouds: Sequence[Tensor],
+    config: RegisterConfig | None = None,
+    progress: Progress | None = None,
+    names: Sequence[str] | None = None,
+) -> ChainResult:
+    """Initial poses of scans in any order: coarse alignment of every pair, an overlap graph
+    and its maximum spanning tree.
+
+    1. **Coarse level, all pairs.** Every pair (i, k), i < k, runs the first pairwise level
+       (``hypotheses`` rotations spread over SO(3), centroids aligned, point-to-plane ICP on
+       the coarsest voxels) and is scored by its *symmetric overlap*: the smaller of the two
+       fractions of points within the level's yardstick of the other scan.
+    2. **Fine levels, candidate pairs.** Each scan's ``candidates`` best partners by that
+       score are refined through the remaining levels from the coarse level's best
+       hypotheses and scored again at the finest yardstick (one voxel).
+    3. **Maximum spanning tree** of the fine scores (Kruskal): the most reliable pairs that
+       connect all scans; the initial poses compose the tree's relative poses from scan 0.
+
+    Wrong pairwise alignments (a partial view matched to the wrong side of an object) overlap
+    less than right ones, so the tree avoids them while right ones exist; the joint
+    refinement then uses every pair that overlaps at these poses, not only the tree's.
+
+    Args:
+        clouds: m ≥ 2 scans in any order, shapes (N_i, 3), in their own frames; tensors or
+            numpy arrays.
+        config: options (``voxel_size`` None: derived from the scans; ``hypotheses``,
+            ``stages``, ``candidates``).
+        progress: called with one line per step.
+        names: scan names for the progress lines.
+
+    A pair joining two groups of scans is left out when most other registered pairs between
+    those groups (weighted by their scores) contradict it — unless no other pair joins them.
+    Pairwise scores cannot tell the views of a near-symmetric object apart when most of its
+    pairs match the mirror side; give such scans in chain order (``order="chain"``).
+
+    Returns:
+        :class:`ChainResult` with the tree's edges, poses in the frame of scan 0.
+
+    Raises:
+        ValueError: bad arguments; scans that no pair connects (no overlap found).
+    """
+    fn = "register_tree"
+    clouds = check_clouds(fn, clouds, minimum=2, min_points=3)
+    config = check_config(fn, config).resolved(clouds, fn)
+    m = len(clouds)
+    if names is not None:
+        names = _checks.check_names(fn, names, count=m, words=False)
+    if progress is not None and not callable(progress):
+        raise TypeError(f"{fn}: argument 'progress' must be callable or None")
+    label = list(names) if names is not None else [str(k) for k in range(m)]
+    say = progress or (lambda _line: None)
+    stages = config.pairwise_stages()
+    rotations = icp.rotations_uniform(config.hypotheses, dtype=clouds[0].dtype)
+    levels = [_level(fn, clouds, stage) for stage in stages]
+    tic = time.perf_counter()
+    coarse = torch.full((m, m), math.nan, dtype=torch.float64)
+    kept: dict[tuple[int, int], Tensor] = {}
+    first = stages[0]
+    for i, k in itertools.combinations(range(m), 2):
+        (src, tgt), normals = (levels[0][0][k], levels[0][0][i]), levels[0][1][i]
+        initial = icp.initial_guesses(clouds[k], clouds[i], rotations)
+        runs = icp._run(fn, src, tgt, initial, first.config, normals)
+        best, order = icp._select(runs, src, tgt, _yardstick(first), fn)
+        coarse[i, k] = coarse[k, i] = _symmetric_overlap(
+            fn, best.transform, src, tgt, _yardstick(first)
+        )
+        kept[(i, k)] = runs.transform[order[: first.keep]]
+    say(
+        f"coarse alignment of all {len(kept)} pairs ({config.hypotheses} starts each, "
+        f"{first.voxel_size:g} voxels): {time.perf_counter() - tic:.1f} s"
+    )
+    candidates: set[tuple[int, int]] = set()
+    for i in range(m):
+        others = [k for k in range(m) if k != i]
+        others.sort(key=lambda k: (-float(coarse[i, k]), k))
+        for k in others[: config.candidates]:
+            candidates.add((min(i, k), max(i, k)))
+    fine = torch.full((m, m), math.nan, dtype=torch.float64)
+    results: dict[tuple[int, int], tuple[icp.ICPResult, float]] = {}
+    tic = time.perf_counter()
+    for i, k in sorted(candidates):
+        start = time.perf_counter()
+        hypotheses = kept[(i, k)]
+        best = None
+        for stage, ((small, normal_sets)) in zip(stages[1:], levels[1:], strict=True):
+            src, tgt = small[k], small[i]
+            runs = icp._run(fn, src, tgt, hypotheses, stage.config, normal_sets[i])
+            best, order = icp._select(runs, src, tgt, _yardstick(stage), fn)
+            hypotheses = runs.transform[order[: stage.keep]]
+        if best is None:  # a single level: the coarse result
+            src, tgt = levels[0][0][k], levels[0][0][i]
+            runs = icp._run(fn, src, tgt, hypotheses[:1], first.config, levels[0][1][i])
+            best, _ = icp._select(runs, src, tgt, _yardstick(first), fn)
+        last = levels[-1][0]
+        fine[i, k] = fine[k, i] = _symmetric_overlap(
+            fn, best.transform, last[k], last[i], _yardstick(stages[-1])
+        )
+        results[(i, k)] = (best, time.perf_counter() - start)
+    say(
+        f"fine alignment of {len(candidates)} candidate pairs (each scan's best "
+        f"{config.candidates}): {time.perf_counter() - tic:.1f} s"
+    )
+    voxel = config.voxel
+    centroids = torch.stack([c.mean(0) for c in clouds]).to(torch.float64).cpu()
+    transforms = {p: r.transform.detach().to(torch.float64).cpu() for p, (r, _) in results.items()}
+    edges, rejected = _maximum_spanning_tree(
+        m, {p: float(fine[p]) for p in candidates}, transforms, centroids, (5.0, 5 * voxel)
+    )
+    for a, b in rejected:
+        say(
+            f"  pair {label[a]} – {label[b]} (overlap {float(fine[a, b]):.3f}) left out: "
+            "it contradicts the pairs around it"
+        )
+    if len(edges) < m - 1:
+        # Scans the candidates leave apart: try the remaining pairs by their coarse score.
+        reached = _components(m, edges)
+        apart = ", ".join(label[k] for k in range(m) if reached[k] != reached[0])
+        raise ValueError(
+            f"{fn}: the scans fall apart into {len(set(reached))} groups that no registered "
+            f"pair connects ({apart} vs {label[0]}); do they overlap? Try more candidates "
+            "or hypotheses"
+        )
+    relative, pair_results, pair_seconds = [], [], []
+    poses: list[Tensor | None] = [None] * m
+    poses[0] = se3.identity(dtype=clouds[0].dtype, device=clouds[0].device)
+    for parent, child in edges:
+        best, seconds = results[(min(parent, child), max(parent, child))]
+        T = best.transform if parent < child else se3.inverse(best.transform)
+        relative.append(T)
+        pair_results.append(best)
+        pair_seconds.append(seconds)
+        parent_pose = poses[parent]
+        assert parent_pose is not None
+        poses[child] = se3.compose(parent_pose, T)
+        score = float(fine[parent, child])
+        warning = " (low: do these scans overlap?)" if score < 0.2 else ""
+        say(f"  tree edge {label[parent]} ← {label[child]}: overlap {score:.3f}{warning}")
+    return ChainResult(
+        torch.stack(relative),
+        torch.stack([p for p in poses if p is not None]),
+        pair_results,
+        pair_seconds,
+        edges,
+        coarse,
+        fine,
+    )
+
+
+def _level(
+    fn: str, clouds: Sequence[Tensor], stage: icp.Stage
+) -> tuple[list[Tensor], list[Tensor | None]]:
+    """The clouds of one pairwise level and, for point-to-plane, their normals."""
+    small = [
+        icp._downsample(fn, c, stage.voxel_size) if stage.voxel_size > 0 else c for c in clouds
+    ]
+    for k, c in enumerate(small):
+        if c.shape[0] < 3:
+            raise ValueError(
+                f"{fn}: scan {k} keeps {c.shape[0]} points on the {stage.voxel_size:g} voxel "
+                "grid, need ≥ 3; use a smaller voxel size"
+            )
+    normals: list[Tensor | None] = [None] * len(small)
+    if stage.config.method == "point_to_plane":
+        normals = [
+            icp._normals(fn, c, min(stage.normal_neighbors, c.shape[0]), None) for c in small
+        ]
+    return small, normals
+
+
+def _yardstick(stage: icp.Stage) -> float:
+    return stage.voxel_size if stage.fitness_distance is None else stage.fitness_distance
+
+
+def _symmetric_overlap(
+    fn: str, T: Tensor, source: Tensor, target: Tensor, distance: float
+) -> float:
+    """min(fraction of source within ``distance`` of target at T, and the reverse)."""
+    forward, _ = icp._fitness(T[None], source, target, distance, fn)
+    backward, _ = icp._fitness(se3.inverse(T)[None], target, source, distance, fn)
+    return float(torch.minimum(forward, backward)[0])
+
+
+def _components(m: int, edges: Sequence[tuple[int, int]]) -> list[int]:
+    """The connected component (its smallest scan index) of every scan."""
+    parent = list(range(m))
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a, b in edges:
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    return [root(a) for a in range(m)]
+
+
+def _maximum_spanning_tree(
+    m: int,
+    scores: dict[tuple[int, int], float],
+    transforms: dict[tuple[int, int], Tensor],
+    centroids: Tensor,
+    tolerance: tuple[float, float],
+) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """Kruskal on descending scores (ties by index) with a loop check, then oriented away
+    from scan 0: ``(edges (parent, child) in breadth-first order, rejected pairs)``.
+
+    ``transforms[(i, k)]`` (i < k) maps scan k into scan i. An edge that joins two groups
+    of scans is accepted unless the other registered pairs between the two groups mostly
+    disagree with it (weighted by their scores): a pair (x, y) agrees when its own
+    transform and the one the joined tree predicts differ by at most ``tolerance`` =
+    (degrees, distance moved by y's centroid). A wrong match of two views (e.g. the back of
+    a near-symmetric object matched to its front) scores well on its own but contradicts
+    the pairs around it.
+    """
+    group = list(range(m))  # scan → its group's label
+    # pose of every scan in the frame of its group's first scan (identity for singletons)
+    frame = [torch.eye(4, dtype=centroids.dtype) for _ in range(m)]
+    chosen, rejected = [], []
+    finite = [(p, s) for p, s in scores.items() if math.isfinite(s) and s > 0]
+    for (a, b), _ in sorted(finite, key=lambda item: (-item[1], item[0])):
+        ga, gb = group[a], group[b]
+        if ga == gb:
+            continue
+        # Members of b's group in the frame of a's group: X ↦ F_a T_ab F_b⁻¹ X.
+        bridge = frame[a] @ transforms[(a, b)] @ torch.linalg.inv(frame[b])
+        agree = disagree = 0.0
+        for (x, y), score in finite:
+            if (x, y) == (a, b) or {group[x], group[y]} != {ga, gb}:
+                continue
+            fx = frame[x] if group[x] == ga else bridge @ frame[x]
+            fy = frame[y] if group[y] == ga else bridge @ frame[y]
+            predicted = torch.linalg.inv(fx) @ fy  # maps y into x
+            error = torch.linalg.inv(transforms[(x, y)]) @ predicted
+            cos = ((error[0, 0] + error[1, 1] + error[2, 2] - 1) / 2).clamp(-1.0, 1.0)
+            angle = math.degrees(math.acos(float(cos)))
+            c = centroids[y]
+            shift = float(torch.linalg.vector_norm(error[:3, :3] @ c + error[:3, 3] - c))
+            if angle <= tolerance[0] and shift <= tolerance[1]:
+                agree += score
+            else:
+                disagree += score
+        if disagree > agree:
+            rejected.append((a, b))
+            continue
+        for k in range(m):
+            if group[k] == gb:
+                frame[k] = bridge @ frame[k]
+                group[k] = ga
+        chosen.append((a, b))
+    # Groups that only contradicted pairs join: the best of those edges, unchecked.
+    for a, b in list(rejected):
+        ga, gb = group[a], group[b]
+        if ga != gb:
+            for k in range(m):
+                if group[k] == gb:
+                    group[k] = ga
+            chosen.append((a, b))
+            rejected.remove((a, b))
+    neighbours: dict[int, list[int]] = {k: [] for k in range(m)}
+    for a, b in chosen:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    oriented, seen, queue = [], {0}, [0]
+    while queue:
+        a = queue.pop(0)
+        for b in sorted(neighbours[a]):
+            if b not in seen:
+                seen.add(b)
+                oriented.append((a, b))
+                queue.append(b)
+    return oriented, rejected
 
 
 # ----------------------------------------------------------------------------- joint solve
@@ -238,7 +542,7 @@ def overlapping_pairs(
     trees = [cKDTree(w) for w in world]
     overlap = np.eye(m)
     for i, k in itertools.permutations(range(m), 2):
-        d, _ = trees[k].query(world[i], distance_upper_bound=distance)
+        d, _ = trees[k].query(world[i], distance_upper_bound=distance, workers=icp.query_workers())
         overlap[i, k] = float(np.isfinite(d).mean())
     pairs = [
         (i, k)
@@ -285,7 +589,7 @@ def boundary_mask(points: Tensor, neighbors: int = 12, threshold: float = 0.3) -
             f"{fn}: argument 'points' contains non-finite values (NaN or Inf), first at point {bad}"
         )
     k = min(neighbors, points.shape[0])
-    distance, index = cKDTree(x).query(x, k=k)
+    distance, index = cKDTree(x).query(x, k=k, workers=icp.query_workers())
     local = x[index]  # (N, k, 3)
     centroid = local.mean(1)
     # Only the offset along the surface counts: on a curved surface the centroid also lies
@@ -356,6 +660,8 @@ class RefineResult:
     # the clouds the tracks index (boundary points removed) and their unit normals
     track_clouds: list[Tensor]
     track_normals: list[Tensor]
+    # the options in force (voxel_size resolved)
+    config: RegisterConfig = field(default_factory=RegisterConfig)
 
 
 def _normals_of(tracks: Tracks, normals: Sequence[Tensor]) -> Tensor:
@@ -420,14 +726,14 @@ def refine(
     fn = "refine"
     clouds = check_clouds(fn, clouds, minimum=2, min_points=2)
     check_poses(fn, poses, len(clouds))
-    config = check_config(fn, config)
+    config = check_config(fn, config).resolved(clouds, fn)
     if progress is not None and not callable(progress):
         raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if pairs is not None:
         pairs = _checks.check_index_pairs(fn, pairs, len(clouds))
     poses = relative_to_first(poses.detach().clone().to(clouds[0].dtype), 0)
     if pairs is None:
-        pairs, _ = overlapping_pairs(clouds, poses, config.voxel_size, config.min_overlap)
+        pairs, _ = overlapping_pairs(clouds, poses, config.voxel, config.min_overlap)
     pairs = list(pairs)
     normals = [icp.estimate_normals(c, min(config.normal_neighbors, len(c))) for c in clouds]
     if config.boundary_threshold is not None:
@@ -438,7 +744,7 @@ def refine(
         clouds = [c[keep] for c, keep in zip(clouds, interior, strict=True)]
         normals = [n[keep] for n, keep in zip(normals, interior, strict=True)]
     solver = SolverConfig(max_iterations=config.max_iterations, function_tolerance=1e-8)
-    radius = config.track_radius * config.voxel_size
+    radius = config.track_radius * config.voxel
     rounds: list[RoundInfo] = []
     tracks = None
     for index in range(config.rounds if pairs else 0):
@@ -449,8 +755,13 @@ def refine(
         problem = _problem(tracks, poses, normals, config)
         result = solve(problem, solver)
         updated = se3.inverse(result.poses[0].detach())
-        rotation_change, translation_change = _pose_change(poses, updated)
-        poses = relative_to_first(updated, 0)
+        finite = bool(torch.isfinite(updated).all())
+        # A failed solve (non-finite poses) keeps the poses it started from; its status says so.
+        rotation_change, translation_change = (
+            _pose_change(poses, updated) if finite else (math.nan, math.nan)
+        )
+        if finite:
+            poses = relative_to_first(updated, 0)
         info = RoundInfo(
             tracks.num_points,
             tracks.num_edges,
@@ -471,12 +782,12 @@ def refine(
                 f"{info.iterations} LM iterations ({info.status.name.lower()}), pose change "
                 f"≤ {rotation_change:.3f}° / {translation_change:.3g}, {info.seconds:.1f} s"
             )
-        if (
+        if not finite or (
             rotation_change <= config.rotation_tolerance_deg
-            and translation_change <= config.translation_tolerance * config.voxel_size
+            and translation_change <= config.translation_tolerance * config.voxel
         ):
             break
-    return RefineResult(poses, rounds, tracks, pairs, clouds, normals)
+    return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config)
 
 
 def joint_cost(
@@ -493,7 +804,8 @@ def joint_cost(
     Args:
         refinement: a :func:`refine` result (its last tracks, clouds and normals).
         poses: T_0i, shape (m, 4, 4), any common frame.
-        config: the options that define Ω and ρ (those of the refinement).
+        config: the options that define Ω and ρ; None: those of the refinement (a config
+            without ``voxel_size`` takes the refinement's).
 
     Returns:
         The cost (nan when the refinement has no tracks).
@@ -504,7 +816,9 @@ def joint_cost(
             f"{fn}: argument 'refinement' must be a RefineResult, "
             f"got {_checks.describe(refinement)}"
         )
-    config = check_config(fn, config)
+    config = refinement.config if config is None else check_config(fn, config)
+    if config.voxel_size is None:
+        config = replace(config, voxel_size=refinement.config.voxel)
     m = len(refinement.track_clouds)
     check_poses(fn, poses, m, against="the refinement's scans")
     tracks = refinement.tracks
@@ -533,17 +847,17 @@ def _track_points(tracks: Tracks, poses: Tensor) -> Tensor:
 class Registration:
     """Result of :func:`register`. Poses map each scan into the frame of scan ``frame``."""
 
-    # scan names, input (chain) order
+    # scan names, input order (every per-scan field follows it)
     names: list[str]
     # index of the reference scan whose frame the poses are in
     frame: int
-    # chained pairwise-ICP poses T_0i, shape (m, 4, 4)
+    # initial poses from pairwise ICP (chain or spanning tree) T_0i, shape (m, 4, 4)
     chained: Tensor
     # jointly optimized poses T_0i, shape (m, 4, 4) (the chained ones if rounds = 0)
     poses: Tensor
-    # the pairwise chain
+    # the pairwise chain or spanning tree (indices: input order)
     chain: ChainResult
-    # the joint refinement
+    # the joint refinement (indices: input order)
     refinement: RefineResult
     # track-level clouds (voxel_size) in their scan frames
     clouds: list[Tensor]
@@ -552,10 +866,23 @@ class Registration:
     # RMS point-to-plane distance between matched scans: chained, joint
     residual_chained: float
     residual_joint: float
-    # voxel pitch of ``clouds``
+    # voxel pitch of ``clouds`` (derived from the scans unless given)
     voxel_size: float = 0.0
-    # wall seconds per stage (downsample, chain, refine, total)
+    # wall seconds per stage (chain, overlap, refine, total)
     seconds: dict[str, float] = field(default_factory=dict)
+    # the options in force (voxel_size resolved)
+    config: RegisterConfig = field(default_factory=RegisterConfig)
+    # the scans' spacing and size (units check), and messages about odd scans
+    scale: ScanScale | None = None
+
+    @property
+    def ok(self) -> bool:
+        """True when every pose is finite and no joint solve failed (NON_FINITE or
+        LINEAR_SOLVE_FAILED)."""
+        failed = {Status.NON_FINITE, Status.LINEAR_SOLVE_FAILED}
+        return bool(torch.isfinite(self.poses).all()) and not any(
+            info.status in failed for info in self.refinement.rounds
+        )
 
 
 def register(
@@ -566,22 +893,32 @@ def register(
     frame: int | str = 0,
     progress: Progress | None = None,
 ) -> Registration:
-    """The whole pipeline (module docstring) on scans given in chain order.
+    """The whole pipeline (module docstring) on scans in any order and any unit.
+
+    With ``config.order == "any"`` (the default) the initial poses come from
+    :func:`register_tree` (all pairs aligned coarsely, the most reliable ones finely, their
+    maximum spanning tree); the scans are processed in the order of their names, so the
+    result does not depend on the order they are given in. With ``"chain"`` successive scans
+    are registered along the given order (:func:`register_chain`). ``voxel_size`` None (the
+    default) derives every length from the scans (:func:`~torchslam.registration.config.
+    auto_voxel_size`); implausible scans (mixed units, coinciding points, coordinates the
+    dtype cannot resolve) are refused with a ValueError.
 
     Args:
         names: scan names, m ≥ 2.
-        clouds: full-resolution scans in their own frames, shapes (N_i, 3), chain order.
+        clouds: full-resolution scans in their own frames, shapes (N_i, 3): torch tensors or
+            numpy arrays (float32/float64).
         config: options.
         frame: index or name of the scan whose frame the poses are expressed in.
         progress: called with one line per stage (and per pair and round).
 
     Returns:
-        :class:`Registration`.
+        :class:`Registration` (check :attr:`Registration.ok`).
 
     Raises:
         TypeError, ValueError: bad arguments (names must be distinct single words, as
-            :func:`write_poses` writes them; clouds float tensors (N_i, 3) of one dtype and
-            device, finite; ``frame`` an int index or a name among ``names``).
+            :func:`write_poses` writes them; clouds float (N_i, 3) of one dtype and device,
+            finite; ``frame`` an int index or a name among ``names``), implausible scans.
     """
     fn = "register"
     names = _checks.check_names(fn, names)
@@ -601,42 +938,30 @@ def register(
             )
         frame = names.index(frame)
     frame = _checks.check_int(fn, "frame", frame, minimum=0, maximum=len(names) - 1)
-    _check_point_counts(names, clouds, config)
     say = progress or (lambda _line: None)
-    seconds: dict[str, float] = {}
     start = time.perf_counter()
-
-    say(f"pairwise ICP along the chain: {len(clouds) - 1} pairs …")
-    tic = time.perf_counter()
-    chain = register_chain(clouds, config, lambda line: say("  " + line), names)
-    seconds["chain"] = time.perf_counter() - tic
-
-    tic = time.perf_counter()
-    small = [icp.voxel_downsample(c, config.voxel_size) for c in clouds]
-    pairs, overlap = overlapping_pairs(small, chain.poses, config.voxel_size, config.min_overlap)
-    chain_pairs = {(k, k + 1) for k in range(len(clouds) - 1)}
-    pairs = sorted(set(pairs) | chain_pairs)
-    extra = [p for p in pairs if p not in chain_pairs]
-    seconds["overlap"] = time.perf_counter() - tic
-    say(
-        f"overlapping pairs at the chained poses: {len(pairs)}, {len(extra)} besides the chain "
-        f"(overlap ≥ {config.min_overlap:g} within {config.voxel_size:g})"
-    )
-    for i, k in extra:
-        say(f"  {names[i]} – {names[k]}: overlap {overlap[i, k]:.2f} / {overlap[k, i]:.2f}")
-
-    say(
-        f"joint ICP-SLAM on {sum(len(c) for c in small)} points ({config.voxel_size:g} voxels), "
-        f"{config.rounds} rounds at most …"
-    )
-    tic = time.perf_counter()
-    refinement = refine(
-        small, chain.poses, config, pairs=pairs, progress=lambda line: say("  " + line)
-    )
-    seconds["refine"] = time.perf_counter() - tic
-
+    scale = scan_scale(clouds, names, fn=fn)
+    if config.voxel_size is None:
+        config = replace(config, voxel_size=auto_voxel_size(scale))
+        say(
+            f"  scale: point spacing {float(np.median(scale.spacing)):.3g}, RMS radius "
+            f"{float(np.median(scale.radius)):.3g} (scan units) → voxel size "
+            f"{config.voxel:g}"
+        )
+    for line in scale.warnings:
+        say(f"  warning: {line}")
+    _check_point_counts(names, clouds, config)
+    if config.order == "any":
+        # Name order inside: the result is the same for any input order.
+        order = sorted(range(len(names)), key=lambda k: names[k])
+        inner = _register([names[k] for k in order], [clouds[k] for k in order], config, say)
+        inner = _permuted(inner, order)
+    else:
+        inner = _register(names, clouds, config, say)
+    chain, refinement, small, overlap, seconds = inner
+    distance = config.voxel
     # The consistency check uses the clouds the joint problem saw (boundary points removed).
-    distance = config.voxel_size
+    pairs = refinement.pairs
     residual_chained = alignment_residual(refinement.track_clouds, chain.poses, pairs, distance)
     residual_joint = alignment_residual(refinement.track_clouds, refinement.poses, pairs, distance)
     seconds["total"] = time.perf_counter() - start
@@ -651,16 +976,108 @@ def register(
         overlap,
         residual_chained,
         residual_joint,
-        config.voxel_size,
+        config.voxel,
         seconds,
+        config,
+        scale,
     )
+
+
+def _register(
+    names: list[str], clouds: list[Tensor], config: RegisterConfig, say: Progress
+) -> tuple[ChainResult, RefineResult, list[Tensor], Tensor, dict[str, float]]:
+    """Pairwise initial poses, overlapping pairs, joint refinement (scans in working order)."""
+    seconds: dict[str, float] = {}
+    tic = time.perf_counter()
+    if config.order == "chain":
+        say(f"pairwise ICP along the chain: {len(clouds) - 1} pairs …")
+        chain = register_chain(clouds, config, lambda line: say("  " + line), names)
+    else:
+        say(f"pairwise ICP, scans in any order: {len(clouds)} scans …")
+        chain = register_tree(clouds, config, lambda line: say("  " + line), names)
+    seconds["chain"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    small = [icp.voxel_downsample(c, config.voxel) for c in clouds]
+    pairs, overlap = overlapping_pairs(small, chain.poses, config.voxel, config.min_overlap)
+    edge_pairs = {(min(a, b), max(a, b)) for a, b in chain.tree_edges}
+    pairs = sorted(set(pairs) | edge_pairs)
+    extra = [p for p in pairs if p not in edge_pairs]
+    seconds["overlap"] = time.perf_counter() - tic
+    kind = "chain" if config.order == "chain" else "spanning tree"
+    say(
+        f"overlapping pairs at the initial poses: {len(pairs)}, {len(extra)} besides the "
+        f"{kind} (overlap ≥ {config.min_overlap:g} within {config.voxel:g})"
+    )
+    for i, k in extra:
+        say(f"  {names[i]} – {names[k]}: overlap {overlap[i, k]:.2f} / {overlap[k, i]:.2f}")
+
+    say(
+        f"joint ICP-SLAM on {sum(len(c) for c in small)} points ({config.voxel:g} voxels), "
+        f"{config.rounds} rounds at most …"
+    )
+    tic = time.perf_counter()
+    refinement = refine(
+        small, chain.poses, config, pairs=pairs, progress=lambda line: say("  " + line)
+    )
+    seconds["refine"] = time.perf_counter() - tic
+    return chain, refinement, small, overlap, seconds
+
+
+def _permuted(
+    inner: tuple[ChainResult, RefineResult, list[Tensor], Tensor, dict[str, float]],
+    order: list[int],
+) -> tuple[ChainResult, RefineResult, list[Tensor], Tensor, dict[str, float]]:
+    """Results computed on the scans ``[input[k] for k in order]``, back in input order.
+
+    Poses stay in the frame of the working order's first scan (the caller re-expresses them)."""
+    chain, refinement, small, overlap, seconds = inner
+    m = len(order)
+    back = [0] * m  # working index → input index
+    for working, original in enumerate(order):
+        back[working] = original
+    position = [0] * m  # input index → working index
+    for working, original in enumerate(order):
+        position[original] = working
+    idx = torch.tensor(position)
+
+    def remap(pairs: Sequence[tuple[int, int]], *, sort: bool) -> list[tuple[int, int]]:
+        out = [(back[a], back[b]) for a, b in pairs]
+        return sorted((min(a, b), max(a, b)) for a, b in out) if sort else out
+
+    def matrix(x: Tensor | None) -> Tensor | None:
+        return None if x is None else x[idx][:, idx]
+
+    chain = ChainResult(
+        chain.relative,
+        chain.poses[idx],
+        chain.pair_results,
+        chain.pair_seconds,
+        remap(chain.tree_edges, sort=False),
+        matrix(chain.coarse_score),
+        matrix(chain.fine_score),
+    )
+    tracks = refinement.tracks
+    if tracks is not None:
+        inverse = torch.tensor(back)
+        tracks = replace(tracks, pose_index=inverse[tracks.pose_index])
+    refinement = RefineResult(
+        refinement.poses[idx],
+        refinement.rounds,
+        tracks,
+        remap(refinement.pairs, sort=True),
+        [refinement.track_clouds[p] for p in position],
+        [refinement.track_normals[p] for p in position],
+        refinement.config,
+    )
+    return chain, refinement, [small[p] for p in position], matrix(overlap), seconds
 
 
 def _check_point_counts(
     names: Sequence[str], clouds: Sequence[Tensor], config: RegisterConfig
 ) -> None:
     """Every scan keeps enough points at every voxel size of the pipeline (ValueError)."""
-    sizes = sorted({s.voxel_size for s in config.pairwise_stages()} | {config.voxel_size})
+    sizes = sorted({s.voxel_size for s in config.pairwise_stages()} | {config.voxel})
     # ICP needs 3 points and stops at fewer than min_correspondences (6 by default) matches.
     need = max([3, *(s.config.min_correspondences for s in config.pairwise_stages())])
     for name, cloud in zip(names, clouds, strict=True):

@@ -20,7 +20,7 @@ from torchslam import _checks
 from torchslam.io.stanford import pose_errors
 from torchslam.lie import se3
 from torchslam.registration.config import check_clouds, check_poses
-from torchslam.registration.neighbors import estimate_normals
+from torchslam.registration.neighbors import estimate_normals, query_workers
 
 __all__ = ["alignment_residual", "error_table", "plane_distances"]
 
@@ -62,7 +62,7 @@ def _plane_distances(
     out = [np.zeros(0)]
     for a, b in pairs:
         for i, k in ((a, b), (b, a)):
-            d, j = trees[k].query(world[i], distance_upper_bound=distance)
+            d, j = trees[k].query(world[i], distance_upper_bound=distance, workers=query_workers())
             inside = np.isfinite(d)
             offset = world[i][inside] - world[k][j[inside]]
             out.append((offset * world_normals[k][j[inside]]).sum(-1))

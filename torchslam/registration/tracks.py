@@ -38,7 +38,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
-from torchslam.registration.neighbors import _host
+from torchslam.registration.neighbors import _host, query_workers
 
 __all__ = ["Tracks", "build_tracks", "mutual_nearest_neighbors"]
 
@@ -141,8 +141,9 @@ def _mutual(
         return np.zeros((0, 2), dtype=np.int64)
     tree_a = cKDTree(a) if tree_a is None else tree_a
     tree_b = cKDTree(b) if tree_b is None else tree_b
-    _, ab = tree_b.query(a, distance_upper_bound=radius)  # missing: index len(b)
-    _, ba = tree_a.query(b, distance_upper_bound=radius)  # missing: index len(a)
+    workers = query_workers()
+    _, ab = tree_b.query(a, distance_upper_bound=radius, workers=workers)  # missing: len(b)
+    _, ba = tree_a.query(b, distance_upper_bound=radius, workers=workers)  # missing: len(a)
     found = np.flatnonzero(ab < len(b))
     partner = ab[found]
     back = ba[partner]
