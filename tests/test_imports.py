@@ -39,3 +39,11 @@ def test_conversions_do_not_import_the_pytorch_kinematics_package():
         "torchslam.convert.quaternion_to_matrix(torch.tensor([1.0, 0.0, 0.0, 0.0]))"
     )
     assert "pytorch_kinematics" not in loaded and "matplotlib" not in loaded
+
+
+def test_command_line_parser_does_not_import_registration_or_matplotlib():
+    # `torchslam posegraph …` and `torchslam --help` need neither the registration stack
+    # (SciPy's KD-tree) nor matplotlib.
+    loaded = _modules_after("import torchslam.cli\ntorchslam.cli._parser()")
+    assert "torchslam.registration" not in loaded
+    assert not {m for m in loaded if m.split(".")[0] == "matplotlib"}

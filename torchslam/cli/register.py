@@ -20,6 +20,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -27,10 +28,9 @@ from torchslam.cli import EXIT_FAILED, _stderr, float_range, int_range, plots, s
 from torchslam.io.ply import write_ply
 from torchslam.io.stanford import read_conf, scan_name, stack
 from torchslam.io.trajectories import FORMATS, write_trajectory
-from torchslam.registration import icp
-from torchslam.registration.config import RegisterConfig
-from torchslam.registration.pipeline import load_scans, register
-from torchslam.registration.report import error_table
+
+if TYPE_CHECKING:
+    from torchslam.registration.config import RegisterConfig
 
 __all__ = ["add_arguments", "main", "run"]
 
@@ -103,6 +103,8 @@ def run(
         raise ValueError(f"--frame {frame!r} is not among the scans ({', '.join(expected)})")
     if args.out.exists() and not args.out.is_dir():
         raise ValueError(f"--out {args.out} exists and is not a directory")
+    from torchslam.registration.config import RegisterConfig  # SciPy: loaded when used
+
     config = RegisterConfig(
         voxel_size=args.voxel_size,
         hypotheses=args.hypotheses,
@@ -125,6 +127,10 @@ def _run(
     echo: Callable[[str], None],
     warn: Callable[[str], None],
 ) -> int:
+    from torchslam.registration import icp
+    from torchslam.registration.pipeline import load_scans, register
+    from torchslam.registration.report import error_table
+
     start = time.perf_counter()
     reference = None
     if args.reference is not None:
