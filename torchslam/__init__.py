@@ -7,6 +7,7 @@ float64 by default.
 
 from torchslam import (
     alignment,
+    covariance,
     data,
     icp,  # deprecated alias of registration.icp (a shim module)
     initialization,
@@ -21,6 +22,7 @@ from torchslam import (
     tracks,  # deprecated alias of registration.tracks (a shim module)
 )
 from torchslam._checks import validation
+from torchslam.covariance import MarginalCovariances, marginal_covariances
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.objective import PointMapData
@@ -44,6 +46,7 @@ __all__ = [
     "HuberLoss",
     "ImplicitConfig",
     "IterationInfo",
+    "MarginalCovariances",
     "PointMapData",
     "PointMapProblem",
     "PointObservationTerm",
@@ -58,6 +61,7 @@ __all__ = [
     "__version__",
     "alignment",
     "convert",
+    "covariance",
     "data",
     "icp",
     "initialization",
@@ -65,6 +69,7 @@ __all__ = [
     "jacobians",
     "losses",
     "manifold",
+    "marginal_covariances",
     "metrics",
     "posegraph",
     "registration",

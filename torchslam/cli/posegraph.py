@@ -63,6 +63,8 @@ class PoseGraphOptions:
     # (most ops run single-threaded anyway) and SuperLU is single-threaded, while a second
     # OpenMP thread on a busy 2-core machine made the linearization 25× slower.
     threads: int = 1
+    # Where to write the vertices' marginal covariances (see the covariance block below).
+    covariance: Path | None = None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,6 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--threads", type=int_range(1, 1024), default=1, help="torch CPU threads [1, 1024] (1)"
     )
+    add_covariance_argument(parser)
 
 
 def options_from_args(args: argparse.Namespace) -> PoseGraphOptions:
@@ -105,6 +108,7 @@ def options_from_args(args: argparse.Namespace) -> PoseGraphOptions:
         max_iterations=args.max_iterations,
         linear_solver=args.linear_solver,
         threads=args.threads,
+        covariance=getattr(args, "covariance", None),
     )
 
 
@@ -133,6 +137,7 @@ def run_posegraph(
         raise ValueError(f"--max-iterations must be ≥ 1, got {options.max_iterations}")
     if options.threads < 1:
         raise ValueError(f"--threads must be ≥ 1, got {options.threads}")
+    check_covariance_option(options)
     if options.out is not None and options.out.is_dir():
         raise ValueError(f"--out {options.out} is a directory; give a file name (e.g. out.g2o)")
     if options.plot is not None:
@@ -184,8 +189,59 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
         options.out.parent.mkdir(parents=True, exist_ok=True)
         g2o.write_g2o(options.out, graph, result.poses)
         echo(f"wrote {options.out}")
+    write_covariance_option(options, graph, result, config, echo)
     if options.plot is not None:
         plot = options.plot if options.plot.suffix else options.plot.with_suffix(".png")
         plots.plot_trajectories(plot, poses, result, title=options.path.name)
         echo(f"wrote {plot}")
     return result
+
+
+# ------------------------------------------------------------------------------------------
+# --covariance: the vertices' marginal covariances (torchslam.posegraph.covariance)
+
+
+def add_covariance_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--covariance OUT.txt`` option."""
+    parser.add_argument(
+        "--covariance",
+        type=Path,
+        help="write each vertex's marginal covariance here, one line 'id c11 c12 … c66' "
+        "(36 values row-major, (ω, v) order, right perturbation of the body → world vertex "
+        "pose, relative to the fixed vertex)",
+    )
+
+
+def check_covariance_option(options: PoseGraphOptions) -> None:
+    """ValueError for a ``--covariance`` path that is a folder (before the solve)."""
+    if options.covariance is not None and options.covariance.is_dir():
+        raise ValueError(
+            f"--covariance {options.covariance} is a directory; give a file name (e.g. cov.txt)"
+        )
+
+
+def write_covariance_option(
+    options: PoseGraphOptions,
+    graph: PoseGraph,
+    result: PoseGraphSolveResult,
+    config: PoseGraphSolverConfig,
+    echo: Callable[[str], None],
+) -> None:
+    """Compute and write the covariances when ``--covariance`` was given."""
+    if options.covariance is None:
+        return
+    if not bool(torch.isfinite(result.poses).all()):
+        echo(f"{options.covariance} not written: the solve failed ({result.status.name})")
+        return
+    import time
+
+    from torchslam.posegraph.covariance import marginal_covariances, write_covariances
+
+    start = time.perf_counter()
+    covariances = marginal_covariances(graph, result, config=config)
+    options.covariance.parent.mkdir(parents=True, exist_ok=True)
+    write_covariances(options.covariance, graph, covariances)
+    echo(
+        f"wrote {options.covariance} ({graph.num_vertices} marginal covariances, "
+        f"{covariances.method}, {time.perf_counter() - start:.3f} s)"
+    )

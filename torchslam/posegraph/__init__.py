@@ -6,6 +6,14 @@ information matrix in (ω, v) order. Files are read and written by :mod:`torchsl
 """
 
 from torchslam.posegraph import between, initialization, objectives
+from torchslam.posegraph.covariance import VertexCovariances, marginal_covariances
 from torchslam.posegraph.graph import PoseGraph
 
-__all__ = ["PoseGraph", "between", "initialization", "objectives"]
+__all__ = [
+    "PoseGraph",
+    "VertexCovariances",
+    "between",
+    "initialization",
+    "marginal_covariances",
+    "objectives",
+]
