@@ -66,6 +66,7 @@ from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import StructuredLinearization, linearize, whitening_factors
 from torchslam.solver.plan import LinearPlan
 from torchslam.solver.result import SolveResult
+from torchslam.solver.solve import check_solve_inputs
 from torchslam.solver.sparse import SparseFactor
 
 __all__ = [
@@ -302,8 +303,6 @@ def _marginals(
     rank_tolerance: object,
 ) -> MarginalCovariances:
     # The solve's own checks of the solution and data (names the argument and the function).
-    from torchslam.solver.solve import check_solve_inputs
-
     config = check_solve_inputs(fn, pose_tangent, points, data, config)
     B, m, n = data.valid.shape[0], data.num_poses, data.num_points
     device = pose_tangent.device
