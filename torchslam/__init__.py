@@ -9,6 +9,7 @@ import importlib as _importlib
 
 from torchslam import losses
 from torchslam._checks import validation
+from torchslam.covariance import MarginalCovariances, marginal_covariances
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.objective import PointMapData
@@ -66,6 +67,7 @@ __all__ = [
     "HuberLoss",
     "ImplicitConfig",
     "IterationInfo",
+    "MarginalCovariances",
     "PointMapData",
     "PointMapProblem",
     "PointObservationTerm",
@@ -80,6 +82,7 @@ __all__ = [
     "__version__",
     "alignment",
     "convert",
+    "covariance",
     "data",
     "icp",
     "initialization",
@@ -87,6 +90,7 @@ __all__ = [
     "jacobians",
     "losses",
     "manifold",
+    "marginal_covariances",
     "metrics",
     "posegraph",
     "registration",

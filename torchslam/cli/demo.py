@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from torchslam import initialization, metrics
+from torchslam import covariance, initialization, metrics
 from torchslam.cli import _stderr, float_range, int_range, plots
 from torchslam.data import make_scene
 from torchslam.problem import PointMapProblem
@@ -245,9 +245,27 @@ def run_demo(
         f"status {result.status[0].name} ({result.reason[0]})"
     )
     try:
-        path = plots.plot_demo(scene, init.poses, result, options.out)
+        path = plots.plot_demo(
+            scene, init.poses, result, options.out, _position_covariances(problem, result, options)
+        )
     except plots.MatplotlibMissingError as error:
         warn(f"figure skipped: {error}")
     else:
         echo(f"wrote {path}")
     return result
+
+
+def _position_covariances(problem: PointMapProblem, result: SolveResult, options: DemoOptions):
+    """Covariances of the optimized frame positions in world (frame 0) coordinates, (B, m, 3,
+    3), for the figure's ellipses: the observations have unit weights and noise σ, so the
+    covariance of the estimate is σ² H⁻¹ (:func:`torchslam.marginal_covariances`), moved to
+    the positions by :func:`torchslam.covariance.position_covariance`. None when the figure
+    cannot be drawn or the Hessian is singular."""
+    try:
+        plots.require_matplotlib()
+    except plots.MatplotlibMissingError:
+        return None
+    blocks = covariance.marginal_covariances(problem, result, points=False)
+    if not bool(blocks.ok.all()):
+        return None
+    return covariance.position_covariance(options.noise**2 * blocks.poses, result.poses)

@@ -102,16 +102,24 @@ def check_figure_format(path: Path) -> None:
 
 
 def plot_demo(
-    scene: SyntheticScene, initial_poses: torch.Tensor, result: SolveResult, out: Path
+    scene: SyntheticScene,
+    initial_poses: torch.Tensor,
+    result: SolveResult,
+    out: Path,
+    position_covariances: torch.Tensor | None = None,
 ) -> Path:
     """``demo.png`` in ``out``: top view of the true, initial and optimized trajectories of
-    problem 0, and the cost per iteration. Returns the file written.
+    problem 0 (with 3σ ellipses of the optimized positions when ``position_covariances`` is
+    given), and the cost per iteration. Returns the file written.
 
     Args:
         scene: the synthetic scene (``poses_gt`` T_i0, shape (B, m, 4, 4); ``points_gt``).
         initial_poses: the initial T_i0, shape (B, m, 4, 4).
         result: the solve result.
         out: the output folder (created if missing).
+        position_covariances: covariances of the optimized frame positions in the world
+            (frame 0) coordinates, (B, m, 3, 3)
+            (:func:`torchslam.covariance.position_covariance`), or None.
 
     Raises:
         MatplotlibMissingError: matplotlib is not installed.
@@ -137,6 +145,8 @@ def plot_demo(
         ax.plot(p[:, a], p[:, b], style, label=label, lw=width, alpha=0.9)
     pts = scene.points_gt[0].numpy()
     ax.scatter(pts[:, a], pts[:, b], s=1, c="0.8", zorder=0, label="points")
+    if position_covariances is not None:
+        _draw_ellipses(ax, positions(result.poses.detach()), position_covariances[0], (a, b))
     ax.set_aspect("equal")
     ax.set_xlabel(f"{'xyz'[a]} (m)")
     ax.set_ylabel(f"{'xyz'[b]} (m)")
@@ -153,6 +163,43 @@ def plot_demo(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _draw_ellipses(ax, centres: Tensor, covariances: Tensor, axes: tuple[int, int]) -> None:
+    """3σ ellipses of the positions ``centres`` (m, 3) with covariances (m, 3, 3), projected
+    on the world axes ``axes``; magnified by a power of ten (stated in the legend) when the
+    largest would be under 1% of the trajectory's extent."""
+    from matplotlib.patches import Ellipse
+
+    a, b = axes
+    index = torch.tensor([a, b])
+    C = covariances.detach().cpu().double()[:, index][:, :, index]
+    if not bool(torch.isfinite(C).all()):
+        return
+    values, vectors = torch.linalg.eigh(0.5 * (C + C.transpose(-1, -2)))
+    semi = 3.0 * values.clamp_min(0).sqrt()  # (m, 2): 3σ semi-axes
+    p = centres.detach().cpu().double().numpy()
+    extent = float(np.ptp(p[:, [a, b]], axis=0).max()) or 1.0
+    largest = float(semi.max())
+    scale = 1.0
+    if 0 < largest < 0.01 * extent:
+        scale = 10.0 ** np.ceil(np.log10(0.01 * extent / largest))
+    label = "3σ position ellipses, world axes" + (f" (×{scale:g})" if scale != 1 else "")
+    major = vectors[:, :, 1].numpy()  # eigenvector of the larger eigenvalue, (m, 2)
+    for i in range(p.shape[0]):
+        angle = float(np.degrees(np.arctan2(major[i, 1], major[i, 0])))
+        ax.add_patch(
+            Ellipse(
+                (p[i, a], p[i, b]),
+                2 * scale * float(semi[i, 1]),
+                2 * scale * float(semi[i, 0]),
+                angle=angle,
+                fill=False,
+                color="tab:blue",
+                lw=0.8,
+                label=label if i == 0 else None,
+            )
+        )
 
 
 def plot_bench(rows: list[dict], path: Path) -> None:

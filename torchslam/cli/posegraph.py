@@ -80,6 +80,8 @@ class PoseGraphOptions:
     # Information matrices that are not positive semidefinite: "repair", "nearest" or
     # "strict" (torchslam.io.g2o.INFORMATION_HANDLINGS, rules in torchslam.io.g2o).
     information: Literal["repair", "nearest", "strict"] = "repair"
+    # Where to write the vertices' marginal covariances (see the covariance block below).
+    covariance: Path | None = None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -134,6 +136,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "and rotation blocks (repair, default; SE-Sync's weights use only those), clip their "
         "eigenvalues (nearest), or refuse the file (strict)",
     )
+    add_covariance_argument(parser)
 
 
 def options_from_args(args: argparse.Namespace) -> PoseGraphOptions:
@@ -149,6 +152,7 @@ def options_from_args(args: argparse.Namespace) -> PoseGraphOptions:
         objective=args.objective,
         certify=args.certify,
         information=args.information,
+        covariance=getattr(args, "covariance", None),
     )
 
 
@@ -177,6 +181,7 @@ def run_posegraph(
         raise ValueError(f"--max-iterations must be ≥ 1, got {options.max_iterations}")
     if options.threads < 1:
         raise ValueError(f"--threads must be ≥ 1, got {options.threads}")
+    check_covariance_option(options)
     if options.out is not None and options.out.is_dir():
         raise ValueError(f"--out {options.out} is a directory; give a file name (e.g. out.g2o)")
     if options.plot is not None:
@@ -241,6 +246,7 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
         options.out.parent.mkdir(parents=True, exist_ok=True)
         g2o.write_g2o(options.out, graph, result.poses)
         echo(f"wrote {options.out}")
+    write_covariance_option(options, graph, result, config, echo)
     if options.plot is not None:
         plot = options.plot if options.plot.suffix else options.plot.with_suffix(".png")
         plots.plot_trajectories(plot, poses, result, title=options.path.name, graph=graph)
@@ -308,4 +314,54 @@ def _describe_information(graph: PoseGraph) -> str:
     return (
         f"information: {handling}: {len(adjusted)} of {graph.num_edges} edges not positive "
         f"semidefinite (first on line {source.adjusted_lines[0]}): {what}"
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# --covariance: the vertices' marginal covariances (torchslam.posegraph.covariance)
+
+
+def add_covariance_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--covariance OUT.txt`` option."""
+    parser.add_argument(
+        "--covariance",
+        type=Path,
+        help="write each vertex's marginal covariance here, one line 'id c11 c12 … c66' "
+        "(36 values row-major, (ω, v) order, right perturbation of the body → world vertex "
+        "pose, relative to the fixed vertex)",
+    )
+
+
+def check_covariance_option(options: PoseGraphOptions) -> None:
+    """ValueError for a ``--covariance`` path that is a folder (before the solve)."""
+    if options.covariance is not None and options.covariance.is_dir():
+        raise ValueError(
+            f"--covariance {options.covariance} is a directory; give a file name (e.g. cov.txt)"
+        )
+
+
+def write_covariance_option(
+    options: PoseGraphOptions,
+    graph: PoseGraph,
+    result: PoseGraphSolveResult,
+    config: PoseGraphSolverConfig,
+    echo: Callable[[str], None],
+) -> None:
+    """Compute and write the covariances when ``--covariance`` was given."""
+    if options.covariance is None:
+        return
+    if not bool(torch.isfinite(result.poses).all()):
+        echo(f"{options.covariance} not written: the solve failed ({result.status.name})")
+        return
+    import time
+
+    from torchslam.posegraph.covariance import marginal_covariances, write_covariances
+
+    start = time.perf_counter()
+    covariances = marginal_covariances(graph, result, config=config)
+    options.covariance.parent.mkdir(parents=True, exist_ok=True)
+    write_covariances(options.covariance, graph, covariances)
+    echo(
+        f"wrote {options.covariance} ({graph.num_vertices} marginal covariances, "
+        f"{covariances.method}, {time.perf_counter() - start:.3f} s)"
     )

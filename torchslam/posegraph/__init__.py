@@ -8,15 +8,18 @@ information matrix in (ω, v) order. Files are read and written by :mod:`torchsl
 import importlib as _importlib
 
 from torchslam.posegraph import between, objectives
+from torchslam.posegraph.covariance import VertexCovariances, marginal_covariances
 from torchslam.posegraph.graph import GraphSource, PoseGraph
 
 __all__ = [
     "GraphSource",
     "PoseGraph",
+    "VertexCovariances",
     "between",
     "certification",
     "certify",
     "initialization",
+    "marginal_covariances",
     "objectives",
 ]
 

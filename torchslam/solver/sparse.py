@@ -21,19 +21,33 @@ SPD matrix that is its LDLᵀ factorization (SciPy has no sparse Cholesky; Super
 reusable symbolic factorization, so the ordering is what is reused). The factor's diagonal D
 tells positive definiteness: a problem whose D has an entry ≤ 0 (or fails) is reported,
 never raises. Factors are kept, so further right-hand sides (the implicit backward of
-:mod:`.differentiable`) cost two triangular solves each. SciPy works on the CPU: CUDA tensors
-are moved to the CPU for the factorization and back.
+:mod:`.differentiable`) cost two triangular solves each, and :func:`selected_inverse` gives
+the blocks of S⁻¹ on the factor's pattern (the covariances of :mod:`torchslam.covariance`)
+by the block Takahashi recursion. SciPy works on the CPU: CUDA tensors are moved to the CPU
+for the factorization and back.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["BlockPattern", "SparseFactor", "factorization_work", "fill_reducing_order"]
+if TYPE_CHECKING:
+    import scipy.sparse
+
+__all__ = [
+    "BlockPattern",
+    "SelectedInverse",
+    "SparseFactor",
+    "factorization_work",
+    "fill_reducing_order",
+    "pivot_ratios",
+    "selected_inverse",
+]
 
 # SuperLU's names of the orderings, applied to the block graph.
 PERMC_SPEC = {"mmd": "MMD_AT_PLUS_A", "colamd": "COLAMD", "natural": "NATURAL"}
@@ -266,3 +280,121 @@ class SparseFactor:
             else:  # report it: the problem's factorization is unusable
                 self.factors[b] = None
         return torch.from_numpy(out).to(device=self.device, dtype=self.dtype)
+
+    def block_order(self, b: int) -> np.ndarray:
+        """Position of each 6 × 6 block row of problem ``b`` in its factor, (m,)."""
+        return self.layouts[b].position[::6] // 6
+
+    def solve_columns(self, b: int, rhs: np.ndarray) -> np.ndarray:
+        """X with S X = rhs for problem ``b`` (which must be ok), rhs (6m, c) → (6m, c)."""
+        layout = self.layouts[b]
+        permuted = np.empty_like(rhs)
+        permuted[layout.position] = rhs
+        return self.factors[b].solve(permuted)[layout.position]
+
+    def selected_inverse(self, b: int) -> tuple[SelectedInverse, np.ndarray]:
+        """(:func:`selected_inverse` of problem ``b``'s factor, :func:`pivot_ratios` in the
+        original numbering (6m,)); problem ``b`` must be ok."""
+        lu = self.factors[b]
+        D = lu.U.diagonal()
+        L = lu.L
+        return selected_inverse(L, D), pivot_ratios(L, D)[self.layouts[b].position]
+
+
+# ------------------------------------------------------------------------------------------
+# Selected inverse: the blocks of S⁻¹ on the pattern of the factor (covariances)
+
+
+@dataclass
+class SelectedInverse:
+    """The blocks Z_rc of Z = A⁻¹ on the block pattern of the factor L of A = L D Lᵀ
+    (:func:`selected_inverse`), in the factor's (permuted) block numbering.
+
+    The pattern of L contains the pattern of A's lower triangle, and each of its columns'
+    block rows form a clique of it, so every block of A⁻¹ that A's pattern names (a diagonal
+    block, two poses that share a point or a term) is here.
+    """
+
+    # Sorted keys c·n + r (r ≥ c) of the stored lower blocks, (K,).
+    keys: np.ndarray
+    # Z_rc for each key, (K, k, k).
+    blocks: np.ndarray
+    # Number n of block rows.
+    num_blocks: int
+
+    def lookup(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Blocks Z_rc for permuted block indices (rows[t], cols[t]) of any order: (T, k, k)
+        (zero where not stored) and whether each was stored, bool (T,)."""
+        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+        wanted = lo * self.num_blocks + hi
+        at = np.minimum(np.searchsorted(self.keys, wanted), max(self.keys.size - 1, 0))
+        found = self.keys[at] == wanted if self.keys.size else np.zeros(wanted.shape, bool)
+        blocks = np.where(found[:, None, None], self.blocks[at], 0.0)
+        # Stored as (row ≥ col): Z_rc with r < c is the transpose of the stored Z_cr.
+        return np.where((rows < cols)[:, None, None], blocks.transpose(0, 2, 1), blocks), found
+
+
+def selected_inverse(L: scipy.sparse.spmatrix, D: np.ndarray, block: int = 6) -> SelectedInverse:
+    """The blocks of A⁻¹ on the block pattern of L for A = L D Lᵀ (L unit lower triangular,
+    D diagonal, size N = block · n): the block Takahashi recursion, from the last block column
+    to the first,
+
+        Z_SJ = −Z_SS M_J,   Z_JJ = (L_JJ D_J L_JJᵀ)⁻¹ − Z_SJᵀ M_J,   M_J = L_SJ L_JJ⁻¹,
+
+    S the block rows of L's block column J below J (every block of Z it reads is on the
+    pattern). Work Σ_J |S_J|² block products, the order of the factorization's; memory the
+    factor's; never the dense inverse. ``L`` is SuperLU's ``lu.L`` of a symmetric matrix
+    factored without pivoting and ``D`` its ``lu.U.diagonal()`` (U = D Lᵀ).
+    """
+    k = block
+    N = L.shape[0]
+    n = N // k
+    coo = L.tocoo()
+    lower = coo.row >= coo.col
+    row = coo.row[lower].astype(np.int64)
+    col = coo.col[lower].astype(np.int64)
+    keys, slot = np.unique((col // k) * n + row // k, return_inverse=True)
+    K = keys.size
+    Lb = np.zeros((K, k, k))
+    Lb[slot, row % k, col % k] = coo.data[lower]
+    ptr = np.searchsorted(keys, np.arange(n + 1) * n)
+    block_row = keys % n
+    diagonal = ptr[:-1]  # the diagonal block comes first in its column (rows ≥ column)
+    inv_L = np.linalg.inv(Lb[diagonal])
+    inv_A = (inv_L.transpose(0, 2, 1) / D.reshape(n, 1, k)) @ inv_L
+    M = Lb @ inv_L[keys // n]
+    # Per column J, the |S_J|² blocks of Z_SS as positions in [Z; Zᵀ] (the transposed copy
+    # serves the blocks above the diagonal), built for all columns at once.
+    s = np.diff(ptr) - 1
+    squares = s * s
+    start = np.concatenate(([0], np.cumsum(squares)))
+    column = np.repeat(np.arange(n), squares)
+    local = np.arange(start[-1]) - start[column]
+    size = np.maximum(s[column], 1)
+    first = diagonal[column] + 1 + local // size
+    second = diagonal[column] + 1 + local % size
+    r1, r2 = block_row[first], block_row[second]
+    gather = np.searchsorted(keys, np.minimum(r1, r2) * n + np.maximum(r1, r2)) + K * (r1 < r2)
+    Z = np.zeros((2 * K, k, k))
+    for J in range(n - 1, -1, -1):
+        d, sJ = diagonal[J], s[J]
+        if sJ == 0:
+            Z[d] = Z[K + d] = inv_A[J]
+            continue
+        Z_SS = Z[gather[start[J] : start[J + 1]]]
+        Z_SS = Z_SS.reshape(sJ, sJ, k, k).transpose(0, 2, 1, 3).reshape(k * sJ, k * sJ)
+        M_J = M[d + 1 : d + 1 + sJ].reshape(k * sJ, k)
+        Z_SJ = -(Z_SS @ M_J)
+        blocks = Z_SJ.reshape(sJ, k, k)
+        Z[d + 1 : d + 1 + sJ] = blocks
+        Z[K + d + 1 : K + d + 1 + sJ] = blocks.transpose(0, 2, 1)
+        Z_JJ = inv_A[J] - Z_SJ.T @ M_J
+        Z[d] = Z[K + d] = 0.5 * (Z_JJ + Z_JJ.T)
+    return SelectedInverse(keys, Z[:K], n)
+
+
+def pivot_ratios(L: scipy.sparse.spmatrix, D: np.ndarray) -> np.ndarray:
+    """D_k / A_kk for A = L D Lᵀ, (N,): 1 for a variable independent of the earlier ones,
+    → 0 as it becomes a combination of them (a singular A gives ~ round-off)."""
+    squares = L.multiply(L).tocsr()
+    return D / (squares @ D)
