@@ -131,6 +131,13 @@ def test_joint_refinement_removes_injected_drift(critter):
     assert drift_rotation > 1.0 and drift_translation > 0.04
     assert rotation < 0.1 * drift_rotation and translation < 0.1 * drift_translation
     assert result.tracks is not None and result.tracks.num_points > 1000
+    # Marginal covariances of the last round: (m, 6, 6), symmetric, zero for the gauge scan 0,
+    # positive definite for the others (a well-posed joint problem).
+    cov = result.pose_covariances
+    assert cov is not None and cov.shape == (len(clouds), 6, 6)
+    assert bool((cov[0] == 0).all())
+    assert torch.allclose(cov, cov.transpose(-1, -2), rtol=1e-9, atol=0)
+    assert bool((torch.linalg.eigvalsh(cov[1:]) > 0).all())
 
 
 def test_refine_keeps_exact_poses_nearly_fixed(critter):
@@ -260,6 +267,7 @@ def test_cli_writes_outputs_and_error_table(critter, tmp_path, capsys):
     for stage in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
         assert stage in stdout
     assert "chain rot°" in stdout and "mean" in stdout and "max" in stdout
+    assert "1-σ pose uncertainty" in stdout and "rotation" in stdout
 
     read_names, poses = read_poses(out / "poses.txt")
     assert read_names == names

@@ -197,6 +197,7 @@ def _run(
             "scans in metres):"
         )
         echo(text)
+    _echo_uncertainty(names, registration, echo)
     echo(f"total {time.perf_counter() - start:.1f} s")
     for (a, b), result in zip(
         registration.chain.tree_edges, registration.chain.pair_results, strict=True
@@ -216,3 +217,25 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _echo_uncertainty(names: list[str], registration, echo: Callable[[str], None]) -> None:
+    """Each scan's 1-σ rotation (°) and position uncertainty (the scans' unit), from the joint
+    solve's marginal covariances (:attr:`RefineResult.pose_covariances`), relative to the
+    scan that fixed the gauge."""
+    from torchslam.covariance import pose_uncertainty
+    from torchslam.lie import se3
+
+    refinement = registration.refinement
+    covariances = refinement.pose_covariances
+    if covariances is None:
+        echo("pose uncertainty: not available (no joint round, or its Hessian is singular)")
+        return
+    gauge = [n for n, c in zip(names, covariances, strict=True) if not bool(c.any())]
+    rotation, position = pose_uncertainty(covariances, se3.inverse(refinement.poses))
+    echo(
+        "1-σ pose uncertainty from the joint solve (largest axis; relative to scan "
+        f"{gauge[0] if gauge else '?'}, a-posteriori variance factor):"
+    )
+    for name, r, p in zip(names, rotation.tolist(), position.tolist(), strict=True):
+        echo(f"      {name:>12}  rotation {r:.4f}°  position {p:.4g}")

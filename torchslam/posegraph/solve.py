@@ -229,7 +229,7 @@ class PoseGraphSolveResult:
     time_seconds: float
     linearize_seconds: float
     linear_solve_seconds: float
-    # The loop's own result for the graph as one problem (poses as ξ of T_i0 = T_i⁻¹).
+    # The loop's own result for the graph as one problem (poses as ξ of the vertices T_i).
     solve_result: SolveResult | None = None
 
     @property

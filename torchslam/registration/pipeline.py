@@ -662,6 +662,11 @@ class RefineResult:
     track_normals: list[Tensor]
     # the options in force (voxel_size resolved)
     config: RegisterConfig = field(default_factory=RegisterConfig)
+    # Marginal covariances of the poses at the last round's solution, (m, 6, 6): (ω, v) order,
+    # right perturbation of T_i0 = T_0i⁻¹ (world → scan i), scan 0 the gauge (zero), scaled by
+    # the a-posteriori variance factor σ̂² = 2F / (residuals − unknowns), since the weights
+    # are not calibrated noise models; None when no round ran or the Hessian was singular.
+    pose_covariances: Tensor | None = None
 
 
 def _normals_of(tracks: Tracks, normals: Sequence[Tensor]) -> Tensor:
@@ -747,6 +752,7 @@ def refine(
     radius = config.track_radius * config.voxel
     rounds: list[RoundInfo] = []
     tracks = None
+    covariances = None
     for index in range(config.rounds if pairs else 0):
         tic = time.perf_counter()
         tracks = build_tracks(clouds, poses, radius, pairs=pairs)
@@ -762,6 +768,7 @@ def refine(
         )
         if finite:
             poses = relative_to_first(updated, 0)
+            covariances = _pose_covariances(problem, result, solver)
         info = RoundInfo(
             tracks.num_points,
             tracks.num_edges,
@@ -787,7 +794,22 @@ def refine(
             and translation_change <= config.translation_tolerance * config.voxel
         ):
             break
-    return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config)
+    return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config, covariances)
+
+
+def _pose_covariances(problem: PointMapProblem, result, solver: SolverConfig) -> Tensor | None:
+    """The poses' marginal covariances of a solved round (:attr:`RefineResult.pose_covariances`),
+    or None when its Hessian is singular."""
+    from torchslam.covariance import marginal_covariances
+
+    covariances = marginal_covariances(problem, result, points=False, config=solver)
+    if not bool(covariances.ok[0]):
+        return None
+    residuals = 3 * int(problem.data.valid.sum())
+    unknowns = 6 * int((~problem.data.fixed_poses).sum()) + 3 * problem.num_points
+    dof = max(residuals - unknowns, 1)
+    variance = 2.0 * float(result.final_cost[0]) / dof
+    return covariances.poses[0].detach() * variance
 
 
 def joint_cost(
@@ -1069,6 +1091,7 @@ def _permuted(
         [refinement.track_clouds[p] for p in position],
         [refinement.track_normals[p] for p in position],
         refinement.config,
+        None if refinement.pose_covariances is None else refinement.pose_covariances[idx],
     )
     return chain, refinement, [small[p] for p in position], matrix(overlap), seconds
 
