@@ -19,6 +19,13 @@ Exit status:
   ``torchslam <command>: error: …``, and never a traceback.
 - 130: interrupted (Ctrl-C).
 
+Threads (one policy for every subcommand): ``--threads N`` sets torch's intra-op threads for
+the run (and the worker threads of SciPy's KD-tree queries in ``register``), default
+:data:`DEFAULT_THREADS` = 1. The per-observation and per-edge tensors of these solves are small,
+and on a CPU shared with other work a second OpenMP thread waits for a busy core (measured 5–7×
+slower); only large dense systems (the L case of ``bench``) gain from more. The previous thread
+count is restored when the command returns.
+
 Figures need matplotlib (``pip install 'torchslam[plot]'``). Without it, the figures that a
 command writes by default (``demo``, ``bench``, ``register``) are skipped with one
 ``figure skipped: …`` line on stderr and exit status 0; ``posegraph --plot`` asks for one
@@ -33,26 +40,32 @@ subcommand has its module (:mod:`~torchslam.cli.demo`, :mod:`~torchslam.cli.benc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import NoReturn
 
 __all__ = [
+    "DEFAULT_THREADS",
     "EXIT_FAILED",
     "EXIT_INTERRUPTED",
     "EXIT_OK",
     "EXIT_USAGE",
     "Parser",
     "add_common_options",
+    "add_threads_argument",
     "float_range",
     "int_range",
     "main",
     "solve_exit_status",
+    "using_threads",
 ]
 
 EXIT_OK = 0
+# torch threads of every subcommand unless --threads says otherwise (module docstring).
+DEFAULT_THREADS = 1
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -130,6 +143,31 @@ def add_common_options(parser: argparse.ArgumentParser, *, top_level: bool = Fal
         help=f"also print the library's log records ({', '.join(LOGGERS)}) on stderr",
     )
     parser.add_argument("--version", action="version", version=f"torchslam {__version__}")
+
+
+def add_threads_argument(parser: argparse.ArgumentParser) -> None:
+    """``--threads N`` (the module docstring's policy), the same on every subcommand."""
+    parser.add_argument(
+        "--threads",
+        type=int_range(1, 1024),
+        default=DEFAULT_THREADS,
+        help=f"torch CPU threads [1, 1024] ({DEFAULT_THREADS}; see 'torchslam --help')",
+    )
+
+
+@contextlib.contextmanager
+def using_threads(threads: int) -> Iterator[None]:
+    """``with using_threads(n):`` torch runs on n intra-op threads inside, restored after."""
+    import torch
+
+    if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
+        raise ValueError(f"--threads must be an integer ≥ 1, got {threads!r}")
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def _stderr(line: str) -> None:

@@ -3,8 +3,9 @@
     torchslam bench [--cases S M L O BATCH] [--repeats N] [--quick] [--out DIR]
     (or .venv/bin/python experiments/bench_solver.py with the same options)
 
-The measurements are those of :mod:`torchslam.benchmark` (float64, torch threads = 2 unless
-``--threads`` says otherwise). Printed: one line per case and a summary table; written:
+The measurements are those of :mod:`torchslam.benchmark` (float64, torch threads as
+``--threads`` says, 1 by default: :mod:`torchslam.cli`'s policy). Printed: one line per case
+and a summary table; written:
 out/bench_solver.json and out/bench_solver.png (the figure needs matplotlib).
 """
 
@@ -19,7 +20,7 @@ from pathlib import Path
 import torch
 
 from torchslam.benchmark import REPEATS, TARGETS_S, matmul_rate, peak_memory_subprocess, run_case
-from torchslam.cli import _stderr, int_range, plots
+from torchslam.cli import _stderr, add_threads_argument, int_range, plots, using_threads
 
 __all__ = ["add_arguments", "main", "run"]
 
@@ -34,9 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="2 repeats, no scipy, no memory")
     parser.add_argument("--no-scipy", action="store_true")
-    parser.add_argument(
-        "--threads", type=int_range(1, 1024), default=2, help="torch threads [1, 1024] (2)"
-    )
+    add_threads_argument(parser)
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
 
 
@@ -51,11 +50,15 @@ def run(
     """
     if args.repeats is not None and args.repeats < 1:
         raise ValueError(f"--repeats must be ≥ 1, got {args.repeats}")
-    if args.threads < 1:
-        raise ValueError(f"--threads must be ≥ 1, got {args.threads}")
+    with using_threads(args.threads):
+        return _run(args, echo, warn)
+
+
+def _run(
+    args: argparse.Namespace, echo: Callable[[str], None], warn: Callable[[str], None]
+) -> list[dict]:
     out_dir = args.out
     out_dir.mkdir(parents=True, exist_ok=True)
-    torch.set_num_threads(args.threads)
     rate = matmul_rate()
     echo(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "

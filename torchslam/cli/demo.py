@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from torchslam import covariance, initialization, metrics
-from torchslam.cli import _stderr, float_range, int_range, plots
+from torchslam.cli import (
+    DEFAULT_THREADS,
+    _stderr,
+    add_threads_argument,
+    float_range,
+    int_range,
+    plots,
+    using_threads,
+)
 from torchslam.data import make_scene
 from torchslam.problem import PointMapProblem
 from torchslam.solver import IterationInfo, SolverConfig, solve
@@ -71,6 +79,8 @@ class DemoOptions:
     seed: int = 0
     # Output folder for demo.png.
     out: Path = Path("out")
+    # torch CPU threads for the run (torchslam.cli's thread policy).
+    threads: int = DEFAULT_THREADS
 
 
 def validate(options: DemoOptions) -> None:
@@ -141,6 +151,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jacobian", choices=["analytic", "jacrev"], default="analytic")
     parser.add_argument("--seed", type=integer("seed"), default=0, help="random seed (0)")
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
+    add_threads_argument(parser)
 
 
 def options_from_args(args: argparse.Namespace) -> DemoOptions:
@@ -156,6 +167,7 @@ def options_from_args(args: argparse.Namespace) -> DemoOptions:
         jacobian=args.jacobian,
         seed=args.seed,
         out=args.out,
+        threads=getattr(args, "threads", DEFAULT_THREADS),
     )
 
 
@@ -173,6 +185,13 @@ def run_demo(
         OSError: the output folder cannot be created or written.
     """
     validate(options)
+    with using_threads(options.threads):
+        return _run_demo(options, echo, warn)
+
+
+def _run_demo(
+    options: DemoOptions, echo: Callable[[str], None], warn: Callable[[str], None]
+) -> SolveResult:
     try:  # the figure's folder first: a bad --out is an error before the solve, not after it
         plots.require_matplotlib()
     except plots.MatplotlibMissingError:

@@ -20,7 +20,7 @@ from typing import Literal
 
 import torch
 
-from torchslam.cli import int_range, plots
+from torchslam.cli import DEFAULT_THREADS, add_threads_argument, int_range, plots, using_threads
 from torchslam.io import g2o
 from torchslam.posegraph import certification, initialization, objectives
 from torchslam.posegraph.graph import PoseGraph
@@ -67,10 +67,8 @@ class PoseGraphOptions:
     max_iterations: int = 100
     # Linear solver: "auto", "sparse" or "dense".
     linear_solver: Literal["auto", "sparse", "dense"] = "auto"
-    # torch CPU threads (torch.set_num_threads). 1 by default: the per-edge tensors are small
-    # (most ops run single-threaded anyway) and SuperLU is single-threaded, while a second
-    # OpenMP thread on a busy 2-core machine made the linearization 25× slower.
-    threads: int = 1
+    # torch CPU threads for the run (torchslam.cli's thread policy).
+    threads: int = DEFAULT_THREADS
     # --- objective and certificate (issue 14) ---
     # Objective minimized: "chi2" (½ Σ rᵀΩr) or "sesync" (SE-Sync's eq. 12).
     objective: Literal["chi2", "sesync"] = "chi2"
@@ -110,9 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--linear-solver", choices=["auto", "sparse", "dense"], default="auto", help="(auto)"
     )
-    parser.add_argument(
-        "--threads", type=int_range(1, 1024), default=1, help="torch CPU threads [1, 1024] (1)"
-    )
+    add_threads_argument(parser)
     # --- objective and certificate (issue 14) ---
     parser.add_argument(
         "--objective",
@@ -186,12 +182,8 @@ def run_posegraph(
         raise ValueError(f"--out {options.out} is a directory; give a file name (e.g. out.g2o)")
     if options.plot is not None:
         plots.check_figure_format(options.plot)  # before the solve, not after it
-    previous_threads = torch.get_num_threads()
-    torch.set_num_threads(options.threads)
-    try:
+    with using_threads(options.threads):
         return _run(options, echo)
-    finally:
-        torch.set_num_threads(previous_threads)
 
 
 def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSolveResult:

@@ -24,7 +24,16 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from torchslam.cli import EXIT_FAILED, _stderr, float_range, int_range, plots, solve_exit_status
+from torchslam.cli import (
+    EXIT_FAILED,
+    _stderr,
+    add_threads_argument,
+    float_range,
+    int_range,
+    plots,
+    solve_exit_status,
+    using_threads,
+)
 from torchslam.io.ply import write_ply
 from torchslam.io.stanford import read_conf, scan_name, stack
 from torchslam.io.trajectories import FORMATS, write_trajectory
@@ -68,9 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rounds", type=int_range(0, 100), default=4, help="joint rounds at most [0, 100] (4)"
     )
-    parser.add_argument(
-        "--threads", type=int_range(1, 1024), default=1, help="torch threads [1, 1024] (1)"
-    )
+    add_threads_argument(parser)
 
 
 def run(
@@ -111,12 +118,8 @@ def run(
         rounds=args.rounds,
         order="chain" if getattr(args, "chain", False) else "any",
     )
-    threads = torch.get_num_threads()
-    torch.set_num_threads(args.threads)
-    try:
+    with using_threads(args.threads):
         return _run(args, config, expected, frame, echo, warn)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run(
