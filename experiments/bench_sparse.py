@@ -122,9 +122,9 @@ def factor_timings(problem: PointMapProblem, repeats: int) -> dict:
     captured = {}
     original = BlockPattern.factor
 
-    def capture(self: BlockPattern, values: torch.Tensor):
+    def capture(self: BlockPattern, values: torch.Tensor, **options):
         captured["values"] = values.detach().clone()
-        return original(self, values)
+        return original(self, values, **options)
 
     lam = torch.full((1,), 1e-4, dtype=xi.dtype)  # the solver's initial λ
     BlockPattern.factor = capture

@@ -569,6 +569,11 @@ class SE3Tangent(Manifold):
         self._check_plus_arguments(fn, x, delta)
         if exp_x is not None:
             _checks.check_tensor(fn, "exp_x", exp_x, (4, 4))
+            if exp_x.shape[:-2] != x.shape[:-1]:
+                raise ValueError(
+                    f"{fn}: argument 'exp_x' must be Exp(x), shape {tuple(x.shape[:-1])} + "
+                    f"(4, 4), got {tuple(exp_x.shape)}"
+                )
         result = _unchecked(self._retract, x, delta, exp_x)
         _checks.check_result_finite(fn, result, x=x, delta=delta)
         return result

@@ -354,6 +354,6 @@ def write_covariance_option(
     options.covariance.parent.mkdir(parents=True, exist_ok=True)
     write_covariances(options.covariance, graph, covariances)
     echo(
-        f"wrote {options.covariance} ({graph.num_vertices} marginal covariances, "
-        f"{covariances.method}, {time.perf_counter() - start:.3f} s)"
+        f"wrote {options.covariance} ({graph.num_vertices} marginal covariances of the chi² "
+        f"objective at the solution, {covariances.method}, {time.perf_counter() - start:.3f} s)"
     )

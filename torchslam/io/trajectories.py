@@ -243,7 +243,8 @@ def write_trajectory(
 def read_trajectory(
     path: str | os.PathLike, format: str = "tum", *, dtype: torch.dtype = torch.float64
 ) -> tuple[Tensor, list[str] | None, Tensor | None]:
-    """Read a trajectory file: ``(T_0i (m, 4, 4), names or None, timestamps (m,) or None)``.
+    """Read a trajectory file: ``(T_0i (m, 4, 4), names or None, timestamps (m,) float64 or
+    None)``.
 
     ``names`` come from a torchslam file or the ``# frames in order:`` header line of a
     file written by :func:`write_trajectory`; ``timestamps`` from a TUM file. KITTI rotations
@@ -303,7 +304,9 @@ def read_trajectory(
     if format == "tum":
         R = convert.quaternion_to_matrix(table[:, 4:])  # (w, x, y, z) after the rewrite
         poses = se3.from_rotation_translation(R, table[:, 1:4])
-        return poses.to(dtype), names, table[:, 0].to(dtype)
+        # Timestamps stay float64 whatever ``dtype``: epoch seconds (~1.7e9) in float32 would
+        # round to 128 s.
+        return poses.to(dtype), names, table[:, 0]
     M = table.reshape(-1, 3, 4)
     U, _, Vh = torch.linalg.svd(M[:, :, :3])
     R = U @ Vh

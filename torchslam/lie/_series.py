@@ -64,7 +64,10 @@ def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:
     table = _TABLES.get(key)
     if table is None:
         table = torch.tensor(list(zip(*series, strict=True)), dtype=x.dtype, device=x.device)
-        _TABLES[key] = table  # a few series × dtypes × devices
+        # Cache plain tensors only (a few series × dtypes × devices): not an inference tensor
+        # (inference_mode) nor a fake one (FakeTensorMode), which later calls could not use.
+        if type(table) is torch.Tensor and not table.is_inference():
+            _TABLES[key] = table
     xs = x[..., None]
     result = table[-1].expand(*x.shape, len(series))
     for row in range(table.shape[0] - 2, -1, -1):

@@ -73,7 +73,10 @@ def _pk_rotation():
         "torchslam.lie._pytorch_kinematics_rotation_conversions", path
     )
     module = importlib.util.module_from_spec(file_spec)
-    file_spec.loader.exec_module(module)
+    try:
+        file_spec.loader.exec_module(module)
+    except ImportError:  # a release whose file imports its package: the ordinary import
+        return importlib.import_module("pytorch_kinematics.transforms.rotation_conversions")
     return module
 
 

@@ -126,6 +126,15 @@ class PointMapData:
                 f"{fn}: field 'terms' must be a tuple of bound torchslam.Term objects, got "
                 f"{_checks.describe(self.terms)}"
             )
+        with_points = self.pose_index.shape[-1] > 0 or any(t.has_point for t in self.terms)
+        inverted = [t for t in self.terms if t.convention == "frame_to_world"]
+        if with_points and inverted:
+            raise ValueError(
+                f"{fn}: {type(inverted[0]).__name__} reads frame → world poses "
+                "(convention='frame_to_world') but the point observations need world → frame "
+                "poses T_i0; use the term with convention='world_to_frame' (e.g. "
+                "PoseGraph.relative_pose_term() on graph.frame_poses())"
+            )
 
     @property
     def num_poses(self) -> int:

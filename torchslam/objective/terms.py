@@ -106,7 +106,14 @@ class Term:
 
     Without a batch dim the term is shared by every problem of the batch. All floating
     tensors must share the problem's dtype and device.
+
+    ``convention`` names the poses the residual reads: ``"world_to_frame"`` (T_i0, those of
+    :class:`torchslam.PointMapProblem`; the default) or ``"frame_to_world"`` (body → world
+    vertices, as the pose-graph adapter holds them); point observations need the former, so a
+    problem refuses to mix them with a frame_to_world term.
     """
+
+    convention: str = "world_to_frame"
 
     def __init__(
         self,
@@ -912,6 +919,42 @@ class PointObservationTerm(Term):
     ) -> tuple[Tensor, Tensor, Tensor]:
         J_xi, J_point = point_observation_jacobians(poses[..., 0, :, :], points)
         return self.residual(poses, points, observations), J_xi[..., None, :], J_point
+
+
+def _cached(term: Term, name: str, tensors: tuple[Tensor, ...], compute):
+    """``compute()`` once per term while ``tensors`` are the same objects, unedited in place
+    (their versions), kept in the term's ``__dict__`` under ``name``; not under torch.func."""
+    versions = tuple(t._version for t in tensors)
+    cached = term.__dict__.get(name)
+    if (
+        cached is not None
+        and all(a is b for a, b in zip(cached[0], tensors, strict=True))
+        and cached[1] == versions
+    ):
+        return cached[2]
+    value = compute()
+    if not any(torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors):
+        term.__dict__[name] = (tensors, versions, value)
+    return value
+
+
+def term_all_valid(term: Term) -> bool:
+    """Whether no instance of the term is padding (then masking can be skipped); one host
+    read per term and mask, cached."""
+    return _cached(term, "_all_valid_cache", (term.valid,), lambda: bool(term.valid.all()))
+
+
+def term_free_poses(term: Term, fixed_poses: Tensor) -> Tensor | None:
+    """Which poses of each instance are free, bool (B, K, a), for a problem's ``fixed_poses``
+    (B, m); None when all are (the common case: no masking needed). Cached per term."""
+
+    def compute() -> Tensor | None:
+        B, m = fixed_poses.shape
+        batch = torch.arange(B, device=fixed_poses.device)[:, None, None]
+        free = ~fixed_poses.reshape(-1)[batch * m + term.pose_index]
+        return None if bool(free.all()) else free
+
+    return _cached(term, "_free_poses_cache", (term.pose_index, fixed_poses), compute)
 
 
 def term_whitening(term: Term) -> Tensor | None:

@@ -5,7 +5,9 @@ The graph is the solver's objective of :func:`torchslam.posegraph.solve.solve_po
 themselves), so the covariances of :mod:`torchslam.covariance` are directly those of the
 vertices: per vertex the 6 × 6 block Cov(δ_i) of the right perturbation T_i·Exp(δ_i),
 δ = (ω, v) rotation first, the convention of g2o and GTSAM's ``Marginals`` (GTSAM's Pose3
-tangent is (ω, v) too). The Gauss-Newton Hessian is JᵀΩJ at the given poses (λ = 0);
+tangent is (ω, v) too). The Gauss-Newton Hessian is JᵀΩJ of the chi² objective ½ Σ rᵀΩr at the given
+poses (λ = 0), also after ``objective="sesync"`` (the information matrices are the noise
+model; SE-Sync's isotropic weights are not);
 covariances are relative to the fixed vertices (the solve's gauge), which have zero blocks.
 Large graphs go through the sparse factor's selected inverse (all 2,500 vertices of
 sphere2500 in about a second), never a dense inverse.
@@ -127,6 +129,8 @@ def marginal_covariances(
         free = N - int(torch.unique(fixed).numel())
         reduced = "dense" if 6 * free <= config.dense_max_variables else "sparse"
         solver_config = dataclasses.replace(solver_config, reduced_solver=reduced)
+    # Always the chi² objective: the information matrices are the noise model, whatever
+    # objective the solve minimized (config.objective chooses only where the poses came from).
     data = graph_data(graph, priors, fixed.to(torch.int64))
     with torch.no_grad():  # the pose-graph solve is not differentiable either
         xi = se3.log(poses.detach())[None]

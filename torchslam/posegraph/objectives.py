@@ -311,8 +311,11 @@ class SESyncTerm(Term):
         measurements: Z_ij ≈ T_i⁻¹ T_j, (K, 4, 4) or (B, K, 4, 4).
         kappa, tau: SE-Sync's weights κ_ij, τ_ij ≥ 0, (K,) or (B, K)
             (:func:`sesync_weights`).
-        loss, valid: as :class:`torchslam.Term`.
+        loss, valid: as :class:`torchslam.Term`; a robust kernel sees s = 2‖r_ij‖² (the
+            weight 2 above), i.e. the edge's own contribution to f.
     """
+
+    convention = "frame_to_world"
 
     def __init__(
         self,

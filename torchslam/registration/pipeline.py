@@ -664,8 +664,10 @@ class RefineResult:
     config: RegisterConfig = field(default_factory=RegisterConfig)
     # Marginal covariances of the poses at the last round's solution, (m, 6, 6): (ω, v) order,
     # right perturbation of T_i0 = T_0i⁻¹ (world → scan i), scan 0 the gauge (zero), scaled by
-    # the a-posteriori variance factor σ̂² = 2F / (residuals − unknowns), since the weights
-    # are not calibrated noise models; None when no round ran or the Hessian was singular.
+    # the a-posteriori variance factor σ̂² = 2F / (3·observations − unknowns), since the
+    # weights are not calibrated noise models; None when no round ran or the Hessian was
+    # singular. Approximate: point-to-plane information is nearly rank 1 per observation, so
+    # counting 3 residuals each underestimates σ̂² (by up to 3×).
     pose_covariances: Tensor | None = None
 
 

@@ -61,7 +61,9 @@ from torchslam.objective.terms import (
     Term,
     masked_weighting,
     point_observation_jacobians,
+    term_all_valid,
     term_blocks,
+    term_free_poses,
     term_points,
     term_poses,
     term_whitening,
@@ -418,6 +420,7 @@ def instance_blocks(
     whitening: Tensor | None,
     weight: Tensor | None,
     loss: object | None,
+    all_valid: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor, Tensor]:
     """Whiten, robustify and multiply out K instances of one residual: the one routine of the
     block form, for the point observations and for every term.
@@ -436,15 +439,17 @@ def instance_blocks(
         whitening: U (B, K, d, d) with UᵀU = Ω per instance, or None.
         weight: scalar weights w (B, K) (1 on padding), or None.
         loss: robust kernel ρ, or None.
+        all_valid: the caller knows no instance is padding (skips the masking copies).
 
     Returns:
         (cost ½ Σ ρ(s) (B,), r̃ (B, K, d), J̃ (B, K, d, c), w (B, K) with 0 on padding or None,
         J̃ᵀJ̃·w (B, K, c, c), J̃ᵀr̃·w (B, K, c)); everything zero on padding.
     """
     valid_r, valid_J = valid[..., None], valid[..., None, None]
-    # Padding instances: zero residual and blocks before whitening (no NaN into U r, U J).
-    r = torch.where(valid_r, r, 0.0)
-    J = torch.where(valid_J, J, 0.0)
+    if not all_valid:
+        # Padding instances: zero residual and blocks before whitening (no NaN into U r, U J).
+        r = torch.where(valid_r, r, 0.0)
+        J = torch.where(valid_J, J, 0.0)
     if whitening is not None:
         r = matmul(whitening, r[..., None])[..., 0]
         J = matmul(whitening, J)
@@ -513,8 +518,10 @@ def linearize_terms(
         r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode)
         K, a = term.pose_index.shape[1:]
         slots = batch[..., None] * m + term.pose_index  # (B, K, a)
-        free = ~data.fixed_poses.reshape(-1)[slots]
-        J = (J * free[:, :, None, :, None]).flatten(-2)  # (B, K, d, 6a)
+        free = term_free_poses(term, data.fixed_poses)
+        if free is not None:  # the columns of fixed poses are zero
+            J = J * free[:, :, None, :, None]
+        J = J.flatten(-2)  # (B, K, d, 6a)
         if has_point:
             point_slots = batch * n + term.point_index  # (B, K)
             free_point = ~data.fixed_points.reshape(-1)[point_slots]
@@ -522,7 +529,7 @@ def linearize_terms(
         whitening = term_whitening(term) if term.information is not None else None
         weight = masked_weighting(term)[0]
         term_cost, _, Jw, scale, JtJ, Jtr = instance_blocks(
-            r, J, term.valid, whitening, weight, term.loss
+            r, J, term.valid, whitening, weight, term.loss, all_valid=term_all_valid(term)
         )
         cost = cost + term_cost
         jacobians.append(Jw)

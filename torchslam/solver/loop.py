@@ -152,8 +152,8 @@ def update_status(
     In this order (the first that holds names the status):
 
     1. ``CONVERGED_FUNCTION``: an accepted step decreased the cost by at most
-       ``function_tolerance``·F, or (Levenberg-Marquardt) the model predicts at most that:
-       nothing is left to gain.
+       ``function_tolerance``·F, or (Levenberg-Marquardt) the model predicts a decrease in
+       [0, ``function_tolerance``·F]: nothing is left to gain.
     2. ``CONVERGED_GRADIENT``: max |g| ≤ ``gradient_tolerance`` at the kept estimate.
     3. ``CONVERGED_PARAMETER``: ‖δ‖ ≤ ``parameter_tolerance``·(‖x‖ + ``parameter_tolerance``),
        ‖x‖ the norm of (ξ, X) of the problem.
@@ -167,7 +167,10 @@ def update_status(
     running = status == int(Status.RUNNING)
     f_conv = accepted & ((old_cost - new_cost).abs() <= config.function_tolerance * old_cost)
     if predicted is not None:
-        f_conv = f_conv | (active & ok & (predicted.abs() <= config.function_tolerance * old_cost))
+        # A negative prediction is an indefinite model (round-off in a damped factor whose
+        # sign check was skipped), never "nothing left to gain".
+        small = (predicted >= 0) & (predicted <= config.function_tolerance * old_cost)
+        f_conv = f_conv | (active & ok & small)
     rules = [
         (active & f_conv, Status.CONVERGED_FUNCTION),
         (active & (gradient <= config.gradient_tolerance), Status.CONVERGED_GRADIENT),

@@ -20,11 +20,12 @@ Each factorization then is one gather into the CSC data array and SuperLU
 SPD matrix that is its LDLᵀ factorization (SciPy has no sparse Cholesky; SuperLU exposes no
 reusable symbolic factorization, so the ordering is what is reused). The factor's diagonal D
 tells positive definiteness: a problem whose D has an entry ≤ 0 (or fails) is reported,
-never raises. Factors are kept, so further right-hand sides (the implicit backward of
-:mod:`.differentiable`) cost two triangular solves each, and :func:`selected_inverse` gives
-the blocks of S⁻¹ on the factor's pattern (the covariances of :mod:`torchslam.covariance`)
-by the block Takahashi recursion. SciPy works on the CPU: CUDA tensors are moved to the CPU
-for the factorization and back.
+never raises (the solver skips the D check for damped systems, positive definite in exact
+arithmetic: :meth:`BlockPattern.factor`). Factors are kept, so further right-hand sides (the
+implicit backward of :mod:`.differentiable`) cost two triangular solves each, and
+:func:`selected_inverse` gives the blocks of S⁻¹ on the factor's pattern (the covariances of
+:mod:`torchslam.covariance`) by the block Takahashi recursion. SciPy works on the CPU: CUDA
+tensors are moved to the CPU for the factorization and back.
 """
 
 from __future__ import annotations
@@ -353,28 +354,40 @@ def selected_inverse(L: scipy.sparse.spmatrix, D: np.ndarray, block: int = 6) ->
     lower = coo.row >= coo.col
     row = coo.row[lower].astype(np.int64)
     col = coo.col[lower].astype(np.int64)
-    keys, slot = np.unique((col // k) * n + row // k, return_inverse=True)
-    K = keys.size
+    entry_keys = (col // k) * n + row // k
+    keys = np.unique(entry_keys)
+    while True:
+        K = keys.size
+        ptr = np.searchsorted(keys, np.arange(n + 1) * n)
+        block_row = keys % n
+        diagonal = ptr[:-1]  # the diagonal block comes first in its column (rows ≥ column)
+        # Per column J, the |S_J|² blocks of Z_SS as positions in [Z; Zᵀ] (the transposed
+        # copy serves the blocks above the diagonal), built for all columns at once.
+        s = np.diff(ptr) - 1
+        squares = s * s
+        start = np.concatenate(([0], np.cumsum(squares)))
+        column = np.repeat(np.arange(n), squares)
+        local = np.arange(start[-1]) - start[column]
+        size = np.maximum(s[column], 1)
+        first = diagonal[column] + 1 + local // size
+        second = diagonal[column] + 1 + local % size
+        r1, r2 = block_row[first], block_row[second]
+        wanted = np.minimum(r1, r2) * n + np.maximum(r1, r2)
+        at = np.searchsorted(keys, wanted)
+        missing = at >= K
+        missing[~missing] = keys[at[~missing]] != wanted[~missing]
+        if not missing.any():
+            break
+        # A block of the factor's structure that SuperLU did not store (its entries cancelled
+        # to exact zeros): add it (with L = 0 there) and rebuild, so that every block the
+        # recursion reads is on the pattern.
+        keys = np.union1d(keys, wanted[missing])
+    gather = at + K * (r1 < r2)
     Lb = np.zeros((K, k, k))
-    Lb[slot, row % k, col % k] = coo.data[lower]
-    ptr = np.searchsorted(keys, np.arange(n + 1) * n)
-    block_row = keys % n
-    diagonal = ptr[:-1]  # the diagonal block comes first in its column (rows ≥ column)
+    Lb[np.searchsorted(keys, entry_keys), row % k, col % k] = coo.data[lower]
     inv_L = np.linalg.inv(Lb[diagonal])
     inv_A = (inv_L.transpose(0, 2, 1) / D.reshape(n, 1, k)) @ inv_L
     M = Lb @ inv_L[keys // n]
-    # Per column J, the |S_J|² blocks of Z_SS as positions in [Z; Zᵀ] (the transposed copy
-    # serves the blocks above the diagonal), built for all columns at once.
-    s = np.diff(ptr) - 1
-    squares = s * s
-    start = np.concatenate(([0], np.cumsum(squares)))
-    column = np.repeat(np.arange(n), squares)
-    local = np.arange(start[-1]) - start[column]
-    size = np.maximum(s[column], 1)
-    first = diagonal[column] + 1 + local // size
-    second = diagonal[column] + 1 + local % size
-    r1, r2 = block_row[first], block_row[second]
-    gather = np.searchsorted(keys, np.minimum(r1, r2) * n + np.maximum(r1, r2)) + K * (r1 < r2)
     Z = np.zeros((2 * K, k, k))
     for J in range(n - 1, -1, -1):
         d, sJ = diagonal[J], s[J]
