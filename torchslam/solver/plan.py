@@ -193,21 +193,30 @@ class DenseReduced:
         """Buffer slot of each upper block key (b·m + i)·m + k."""
         return keys
 
-    def matrix(self, upper: Tensor) -> Tensor:
-        """The symmetric (B, 6m, 6m) matrix of the upper blocks (num_slots, 6, 6)."""
+    def matrix(self, upper: Tensor, dense: Tensor | None = None, mirror: bool = True) -> Tensor:
+        """The symmetric (B, 6m, 6m) matrix of the upper blocks (num_slots, 6, 6) plus
+        ``dense``, an optional symmetric part given as all its blocks (B, m, m, 6, 6).
+        ``mirror=False``: the caller knows ``upper`` holds only diagonal blocks (no strictly
+        upper block to mirror), which saves two passes over the matrix."""
         B, m = self.batch_size, self.num_poses
         A = upper.reshape(B, m, m, 6, 6)
-        strict = ~torch.eye(m, dtype=torch.bool, device=A.device)[None, :, :, None, None]
-        full = A + torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
+        full = A if dense is None else A + dense
+        if mirror:
+            strict = ~torch.eye(m, dtype=torch.bool, device=A.device)[None, :, :, None, None]
+            lower = torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
+            full = full + lower
         return full.transpose(2, 3).reshape(B, 6 * m, 6 * m)
 
     def factor(
-        self, upper: Tensor, dense: Tensor | None = None, definite: bool = False
+        self,
+        upper: Tensor,
+        dense: Tensor | None = None,
+        definite: bool = False,
+        mirror: bool = True,
     ) -> _DenseCholesky:
-        """Factor S = (matrix of ``upper``) + ``dense`` (an optional (B, 6m, 6m) part);
+        """Factor S = :meth:`matrix` (``upper``, ``dense`` (B, m, m, 6, 6) blocks, ``mirror``);
         Cholesky reports a failure at no extra cost, so ``definite`` is not needed."""
-        S = self.matrix(upper)
-        return _DenseCholesky.of(S if dense is None else S + dense)
+        return _DenseCholesky.of(self.matrix(upper, dense, mirror))
 
 
 @dataclass
@@ -465,8 +474,12 @@ class LinearPlan:
                 sums = sums.index_add(0, self.pair_slots, mono)
                 upper = upper + blocks_from_monomials(sums)
             elif not self.sparse and n > 0:
-                dense = -self._monomial_products(lin, v_d)
-            factor = self.reduced.factor(upper, dense, definite)
+                dense = self._monomial_products(lin, v_d)
+            if dense is None:
+                factor = self.reduced.factor(upper, None, definite)
+            else:  # upper holds off-diagonal blocks only when terms add pose pairs
+                has_pairs = lin.terms is not None and self.term_positions.numel() > 0
+                factor = self.reduced.factor(upper, dense, definite, mirror=has_pairs)
             return Factorization(factor, elim, None, self.shape)
         V = damp(lin.point_blocks, lam, self.damping)
         # V⁻¹ through Cholesky of each 3×3 block (a failure marks the whole problem).
@@ -495,8 +508,9 @@ class LinearPlan:
         return self.pairs
 
     def _monomial_products(self, lin: StructuredLinearization, v_d: Tensor) -> Tensor:
-        """Σ_j (a_ij a_kj / v_j) G_jᵀ G_j as a dense (B, 6m, 6m) matrix, a_ij the coupling
-        weight of point j in frame i (0 if none): each of the 10 monomial coefficients of
+        """−Σ_j (a_ij a_kj / v_j) G_jᵀ G_j (the points' part of S) as all its blocks
+        (B, m, m, 6, 6), a_ij the coupling weight of point j in frame i (0 if none): each of
+        the 10 monomial coefficients of
         G_jᵀ G_j (.linearize) is one product A·diag(f/v)·Aᵀ, all by one batched GEMM of
         (m × c) by (c × 10m) per chunk of c points (20·m²·n flops, no per-pair products),
         with c chosen so that the (B, 10·m, c) buffer stays within STRUCTURED_CHUNK_ENTRIES.
@@ -504,8 +518,9 @@ class LinearPlan:
         B, m, n = self.shape
         pose_index, point_index = self.edges.pose_index, self.edges.point_index
         batch = torch.arange(B, device=v_d.device)[:, None]
-        # (B, 10, n), contiguous so that the broadcast product below comes out contiguous.
-        F = (monomials(lin.points) / v_d[..., None]).transpose(1, 2).contiguous()
+        # (B, 10, n), contiguous so that the broadcast product below comes out contiguous;
+        # negated here (exactly: rounding is symmetric) so that no pass negates the result.
+        F = (monomials(lin.points) / -v_d[..., None]).transpose(1, 2).contiguous()
         chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 10 * m)))
         C = v_d.new_zeros(B, 10 * m, m)
         weight = lin.coupling_weight
@@ -524,8 +539,7 @@ class LinearPlan:
             A = A.reshape(B, m, c)
             AF = (A[:, None] * F[:, :, None, start : start + c]).reshape(B, 10 * m, c)
             C = C.baddbmm(AF, A.transpose(1, 2)) if c != n else torch.bmm(AF, A.transpose(1, 2))
-        blocks = blocks_from_monomials(C.reshape(B, 10, m, m).permute(0, 2, 3, 1))
-        return blocks.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+        return blocks_from_monomials(C.reshape(B, 10, m, m).permute(0, 2, 3, 1))
 
     def _factorize_full(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
         """The full (6m + 3n)² system — small problems and cross-checks only. Assembled by
