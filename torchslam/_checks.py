@@ -705,3 +705,10 @@ def check_sequence(
         if not isinstance(value, kind):
             raise TypeError(f"{fn}: {name}[{k}] must be {item or what}, got {describe(value)}")
     return tuple(values)
+
+
+def check_integer_tensor(fn: str, name: str, x: Tensor, what: str = "be an integer tensor") -> None:
+    """TypeError ``{fn}: argument '{name}' must {what}, got {dtype}`` unless ``x`` (a tensor)
+    has an integer dtype (not bool): index arguments."""
+    if x.dtype.is_floating_point or x.dtype.is_complex or x.dtype == torch.bool:
+        raise TypeError(f"{fn}: argument '{name}' must {what}, got {x.dtype}")

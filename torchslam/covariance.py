@@ -133,10 +133,7 @@ def _selection(fn: str, name: str, value: object, count: int, device) -> Tensor:
     if value is False:
         return torch.zeros(0, dtype=torch.long, device=device)
     if isinstance(value, Tensor):
-        if value.dtype.is_floating_point or value.dtype.is_complex or value.dtype == torch.bool:
-            raise TypeError(
-                f"{fn}: argument '{name}' must hold integer indices, got a tensor of {value.dtype}"
-            )
+        _checks.check_integer_tensor(fn, name, value, "hold integer indices")
         if value.dim() != 1:
             raise ValueError(
                 f"{fn}: argument '{name}' must be a 1-D tensor of indices, got shape "
@@ -164,11 +161,7 @@ def _pair_selection(fn: str, pairs: object, m: int, device) -> Tensor:
     if pairs is None:
         return torch.zeros(0, 2, dtype=torch.long, device=device)
     if isinstance(pairs, Tensor):
-        if pairs.dtype.is_floating_point or pairs.dtype.is_complex or pairs.dtype == torch.bool:
-            raise TypeError(
-                f"{fn}: argument 'pairs' must hold integer pose indices, got a tensor of "
-                f"{pairs.dtype}"
-            )
+        _checks.check_integer_tensor(fn, "pairs", pairs, "hold integer pose indices")
         if pairs.dim() != 2 or pairs.shape[1] != 2:
             raise ValueError(
                 f"{fn}: argument 'pairs' must have shape (R, 2), got {tuple(pairs.shape)}"
@@ -460,17 +453,6 @@ def _combine(
 # The elimination's blocks per edge
 
 
-def _edge_blocks(factorization) -> tuple[Tensor, Tensor]:
-    """(W_e (B·E', 6, 3) of every coupling edge, V_j⁻¹ (B, n, 3, 3)) at λ = 0."""
-    elim = factorization.elimination
-    if hasattr(elim, "W"):
-        return elim.W, elim.V_inv
-    # Structured: W_e = w_e G_jᵀ with G_jᵀ = [[X_j]×; I]; V_j = v_j I.
-    eye = torch.eye(3, dtype=elim.X_e.dtype, device=elim.X_e.device)
-    G_t = torch.cat((so3.hat(elim.X_e), eye.expand(elim.X_e.shape[0], 3, 3)), dim=-2)
-    return elim.weight[:, None, None] * G_t, eye / elim.v[..., None, None]
-
-
 def _local_index(index: Tensor, count: int) -> Tensor:
     """Position of each of ``count`` items in the selection ``index``, −1 if not in it."""
     local = torch.full((count,), -1, dtype=torch.long, device=index.device)
@@ -516,7 +498,7 @@ def _dense(plan: LinearPlan, factorization, lin, data: PointMapData, selection, 
     Q = point_index.numel()
     points = sigma.new_zeros(B, Q, 3, 3)
     if Q:
-        W, V_inv = _edge_blocks(factorization)
+        W, V_inv = factorization.elimination.blocks()
         elim = factorization.elimination
         local = _local_index(point_index, n)
         edge_local = local[elim.point_slot % n] if n else elim.point_slot
@@ -603,7 +585,7 @@ def _sparse(plan: LinearPlan, factorization, lin, data: PointMapData, selection,
     as_tensor = lambda x: torch.from_numpy(x).to(device=device, dtype=dtype)  # noqa: E731
     points = torch.zeros(B, Q, 3, 3, dtype=dtype, device=device)
     if Q:
-        W, V_inv = _edge_blocks(factorization)
+        W, V_inv = factorization.elimination.blocks()
         coupled = torch.zeros(B * n, 3, 3, dtype=dtype, device=device)
         if need_points:
             S = as_tensor(pair_blocks)

@@ -296,8 +296,7 @@ def check_batch(fn: str, B: int, **tensors: Tensor) -> None:
 def index_tensor(fn: str, name: str, x: object, shape: tuple, device, source: str = "") -> Tensor:
     if not isinstance(x, Tensor):
         raise TypeError(f"{fn}: argument '{name}' must be a torch.Tensor, got {type(x).__name__}")
-    if x.dtype.is_floating_point or x.dtype.is_complex or x.dtype == torch.bool:
-        raise TypeError(f"{fn}: argument '{name}' must be an integer tensor, got {x.dtype}")
+    _checks.check_integer_tensor(fn, name, x)
     if tuple(x.shape) != tuple(shape):
         raise ValueError(
             f"{fn}: argument '{name}' must have shape {shape}, got {tuple(x.shape)}{source}"

@@ -135,14 +135,7 @@ class Term:
                 f"{fn}: argument 'pose_index' must be a torch.Tensor, "
                 f"got {type(pose_index).__name__}"
             )
-        if (
-            pose_index.dtype.is_floating_point
-            or pose_index.dtype.is_complex
-            or pose_index.dtype == torch.bool
-        ):
-            raise TypeError(
-                f"{fn}: argument 'pose_index' must be an integer tensor, got {pose_index.dtype}"
-            )
+        _checks.check_integer_tensor(fn, "pose_index", pose_index)
         least = 0 if point_index is not None else 1
         if pose_index.dim() not in (2, 3) or pose_index.shape[-1] < least:
             raise ValueError(
@@ -161,15 +154,7 @@ class Term:
                     f"{fn}: argument 'point_index' must be a torch.Tensor or None, "
                     f"got {_checks.describe(point_index)}"
                 )
-            if (
-                point_index.dtype.is_floating_point
-                or point_index.dtype.is_complex
-                or point_index.dtype == torch.bool
-            ):
-                raise TypeError(
-                    f"{fn}: argument 'point_index' must be an integer tensor, "
-                    f"got {point_index.dtype}"
-                )
+            _checks.check_integer_tensor(fn, "point_index", point_index)
             if tuple(point_index.shape) != lead:
                 raise ValueError(
                     f"{fn}: argument 'point_index' must have shape {lead} (those of "

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam.lie.so3 import hat
 from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import (
@@ -268,6 +269,10 @@ class _BlockElimination:
     def point_solve(self, x: Tensor) -> Tensor:
         return (self.V_inv @ x[..., None])[..., 0]
 
+    def blocks(self) -> tuple[Tensor, Tensor]:
+        """(W_e (B·E', 6, 3), V_j⁻¹ (B, n, 3, 3)) as blocks (the covariances read them)."""
+        return self.W, self.V_inv
+
     def couple(self, y: Tensor) -> Tensor:
         """Σ_e W_e y_j(e) per pose, y (B, n, 3) → (B, m, 6)."""
         B, m, _ = self.shape
@@ -296,6 +301,12 @@ class _StructuredElimination:
 
     def point_solve(self, x: Tensor) -> Tensor:
         return x / self.v[..., None]
+
+    def blocks(self) -> tuple[Tensor, Tensor]:
+        """(W_e = w_e G_jᵀ (B·E, 6, 3), G_jᵀ = [[X_j]×; I], V_j⁻¹ = I / v_j (B, n, 3, 3))."""
+        eye = torch.eye(3, dtype=self.X_e.dtype, device=self.X_e.device)
+        G_t = torch.cat((hat(self.X_e), eye.expand(self.X_e.shape[0], 3, 3)), dim=-2)
+        return self.weight[:, None, None] * G_t, eye / self.v[..., None, None]
 
     def couple(self, y: Tensor) -> Tensor:
         B, m, _ = self.shape
