@@ -172,7 +172,8 @@ def dense_jacobian(
     for name, index in (("pose_index", pose_index), ("point_index", point_index)):
         if not isinstance(index, Tensor):
             raise TypeError(f"{fn}: '{name}' must be a torch.Tensor, got {_checks.describe(index)}")
-        _checks.check_integer_tensor(fn, name, index)
+        if index.dtype.is_floating_point or index.dtype.is_complex or index.dtype == torch.bool:
+            raise TypeError(f"{fn}: '{name}' must be an integer tensor, got {index.dtype}")
         if index.dim() != 2:
             raise ValueError(f"{fn}: '{name}' must have shape (B, E), got {tuple(index.shape)}")
     if pose_index.shape != point_index.shape:
