@@ -180,7 +180,10 @@ def test_relative_pose_analytic_equals_jacrev(kind, generator):
     r_ref, J_ref = term_jacobians(term, P, "jacrev")
     assert J.shape == (1, term.num_instances, 6, 2, 6)
     torch.testing.assert_close(r, r_ref, rtol=0, atol=0)
-    assert _relative_error(J, J_ref).max() <= 1e-12
+    # Both differentiate through sums of the instance's translations (up to 1e4 here): their
+    # round-off, ε·_scale relative to blocks of size ~1, bounds the disagreement.
+    eps = torch.finfo(J.dtype).eps
+    assert bool((_relative_error(J, J_ref) <= 16 * eps * _scale(term, P)).all())
 
 
 @pytest.mark.parametrize("kind", ["hard", "random"])
@@ -227,7 +230,10 @@ def test_pose_prior_analytic_equals_jacrev_and_central_differences(kind, generat
     r_ref, J_ref = term_jacobians(term, P, "jacrev")
     assert J.shape == (1, term.num_instances, 6, 1, 6)
     torch.testing.assert_close(r, r_ref, rtol=0, atol=0)
-    assert _relative_error(J, J_ref).max() <= 1e-12
+    # Both differentiate through sums of the instance's translations (up to 1e4 here): their
+    # round-off, ε·_scale relative to blocks of size ~1, bounds the disagreement.
+    eps = torch.finfo(J.dtype).eps
+    assert bool((_relative_error(J, J_ref) <= 16 * eps * _scale(term, P)).all())
     _assert_matches_central_differences(term, P, J)
 
 

@@ -19,7 +19,9 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     """a @ b for stacks of small matrices, (..., p, q) @ (..., q, r) → (..., p, r) (leading
     dims broadcast, as ``@``)."""
     if (
-        a.device.type == "cpu"
+        type(a) is torch.Tensor  # not a subclass (FakeTensor, a tracing wrapper): no .numpy()
+        and type(b) is torch.Tensor
+        and a.device.type == "cpu"
         and b.device.type == "cpu"
         and a.dtype == b.dtype
         and a.dtype in (torch.float32, torch.float64)
@@ -29,6 +31,8 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     ):
         # A transposed view makes NumPy take its slow strided loop: copy it first (cheaper).
         return torch.from_numpy(
-            np.matmul(np.ascontiguousarray(a.numpy()), np.ascontiguousarray(b.numpy()))
+            np.matmul(
+                np.ascontiguousarray(a.detach().numpy()), np.ascontiguousarray(b.detach().numpy())
+            )
         )
     return a @ b

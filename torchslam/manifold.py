@@ -47,6 +47,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam._batched import matmul
 from torchslam.lie import convert, se3, so3
 
 __all__ = [
@@ -545,7 +546,9 @@ class SE3Tangent(Manifold):
                 "with se3.log(se3.exp(xi))"
             )
 
-    def retract(self, x: Tensor, delta: Tensor, *, exp_x: Tensor | None = None) -> Tensor:
+    def retract(
+        self, x: Tensor, delta: Tensor, *, exp_x: Tensor | None = None, with_exp: bool = False
+    ) -> Tensor | tuple[Tensor, Tensor]:
         """The solver's step ξ ← Log(Exp(ξ)·Exp(δ)) (left: Log(Exp(δ)·Exp(ξ))), seed eq. L1/L2.
 
         The same values as :meth:`plus` (bit for bit for |ω|, |δω| ≤ 2²⁰ and translations up
@@ -561,9 +564,13 @@ class SE3Tangent(Manifold):
             delta: steps δ = (δω, δv), shape (..., 6); leading dims broadcast with x's.
             exp_x: ``se3.exp(x, form="fast")`` when the caller has it already (the solver's
                 linearization does), shape (..., 4, 4); it is used as given.
+            with_exp: also return the moved pose matrices Exp(ξ)·Exp(δ) (exp_x itself on the
+                rows whose δ is zero), whose Log the twists are: the solver linearizes at them
+                instead of taking Exp of the twists again.
 
         Returns:
-            Twists, shape (broadcast batch, 6).
+            Twists, shape (broadcast batch, 6); with ``with_exp`` the pair (twists, matrices
+            (broadcast batch, 4, 4)).
         """
         fn = "SE3Tangent.retract"
         self._check_plus_arguments(fn, x, delta)
@@ -574,22 +581,23 @@ class SE3Tangent(Manifold):
                     f"{fn}: argument 'exp_x' must be Exp(x), shape {tuple(x.shape[:-1])} + "
                     f"(4, 4), got {tuple(exp_x.shape)}"
                 )
-        result = _unchecked(self._retract, x, delta, exp_x)
+        result, moved = _unchecked(self._retract, x, delta, exp_x)
         _checks.check_result_finite(fn, result, x=x, delta=delta)
-        return result
+        return (result, moved) if with_exp else result
 
-    def _retract(self, x: Tensor, delta: Tensor, exp_x: Tensor | None = None) -> Tensor:
+    def _retract(
+        self, x: Tensor, delta: Tensor, exp_x: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         T = se3.exp(x, form="fast") if exp_x is None else exp_x
-        if self.perturbation == "right":
-            moved = se3.log(T @ se3.exp(delta, form="fast"))
-        else:
-            moved = se3.log(se3.exp(delta, form="fast") @ T)
-        return torch.where((delta == 0).all(dim=-1, keepdim=True), x, moved)
+        step = se3.exp(delta, form="fast")
+        moved = matmul(T, step) if self.perturbation == "right" else matmul(step, T)
+        keep = (delta == 0).all(dim=-1, keepdim=True)
+        return torch.where(keep, x, se3.log(moved)), torch.where(keep[..., None], T, moved)
 
     def _plus(self, x: Tensor, delta: Tensor) -> Tensor:
         if self.perturbation == "right":
-            return se3.log(se3.exp(x) @ se3.exp(delta))
-        return se3.log(se3.exp(delta) @ se3.exp(x))
+            return se3.log(matmul(se3.exp(x), se3.exp(delta)))
+        return se3.log(matmul(se3.exp(delta), se3.exp(x)))
 
     def _minus(self, y: Tensor, x: Tensor) -> Tensor:
         if self.perturbation == "right":

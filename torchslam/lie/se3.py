@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam._batched import matmul
 from torchslam.lie import _series, so3
 from torchslam.lie.so3 import Form, _check_form
 
@@ -190,7 +191,7 @@ def exp(xi: Tensor, *, form: Form = "robust") -> Tensor:
 
 def _log(T: Tensor) -> Tensor:
     omega = so3._log(T[..., :3, :3])
-    v = (so3._jl_inv(omega) @ T[..., :3, 3:]).squeeze(-1)
+    v = matmul(so3._jl_inv(omega), T[..., :3, 3:]).squeeze(-1)
     return torch.cat((omega, v), dim=-1)
 
 
@@ -212,7 +213,7 @@ def log(T: Tensor) -> Tensor:
 
 def _inverse(T: Tensor) -> Tensor:
     Rt = T[..., :3, :3].transpose(-1, -2)
-    return _assemble(Rt, -(Rt @ T[..., :3, 3:]).squeeze(-1))
+    return _assemble(Rt, -matmul(Rt, T[..., :3, 3:]).squeeze(-1))
 
 
 def inverse(T: Tensor) -> Tensor:
@@ -285,7 +286,7 @@ def act(T: Tensor, points: Tensor) -> Tensor:
 def _adjoint(T: Tensor) -> Tensor:
     R, t = T[..., :3, :3], T[..., :3, 3]
     top = torch.cat((R, torch.zeros_like(R)), dim=-1)
-    bottom = torch.cat((_hat(t) @ R, R), dim=-1)
+    bottom = torch.cat((matmul(_hat(t), R), R), dim=-1)
     return torch.cat((top, bottom), dim=-2)
 
 
@@ -311,16 +312,16 @@ def _q_combination(
     W: Tensor, V: Tensor, c: Tensor, q2: Tensor, q3: Tensor, kappa: Tensor | None = None
 ) -> Tensor:
     """½V + c (WV + VW + κ·WVW) + q2 (WWV + VWW − 3WVW) + q3 (WVWW + WWVW); κ = 1 if None."""
-    WV, VW = W @ V, V @ W
-    WVW = WV @ W
-    WWV = W @ WV
-    VWW = VW @ W
+    WV, VW = matmul(W, V), matmul(V, W)
+    WVW = matmul(WV, W)
+    WWV = matmul(W, WV)
+    VWW = matmul(VW, W)
     kWVW = WVW if kappa is None else kappa[..., None, None] * WVW
     return (
         0.5 * V
         + c[..., None, None] * (WV + VW + kWVW)
         + q2[..., None, None] * (WWV + VWW - 3.0 * WVW)
-        + q3[..., None, None] * (WVW @ W + W @ WVW)
+        + q3[..., None, None] * (matmul(WVW, W) + matmul(W, WVW))
     )
 
 
@@ -370,7 +371,7 @@ def _jl_inv(xi: Tensor) -> Tensor:
     J_inv = so3._jl_inv(omega)
     Q = _q_block(omega, v)
     top = torch.cat((J_inv, torch.zeros_like(J_inv)), dim=-1)
-    return torch.cat((top, torch.cat((-J_inv @ Q @ J_inv, J_inv), dim=-1)), dim=-2)
+    return torch.cat((top, torch.cat((matmul(matmul(-J_inv, Q), J_inv), J_inv), dim=-1)), dim=-2)
 
 
 def _jl_robust(xi: Tensor) -> Tensor:
@@ -388,7 +389,9 @@ def _jl_inv_robust(xi: Tensor) -> Tensor:
     J_inv = so3._jl_inv_from_polar(p)
     Q, unscale = _q_block_robust(p, v)
     top = torch.cat((J_inv, torch.zeros_like(J_inv)), dim=-1)
-    return torch.cat((top, torch.cat(((-J_inv @ Q @ J_inv) * unscale, J_inv), dim=-1)), dim=-2)
+    return torch.cat(
+        (top, torch.cat((matmul(matmul(-J_inv, Q), J_inv) * unscale, J_inv), dim=-1)), dim=-2
+    )
 
 
 _JL_INV_REASON = (

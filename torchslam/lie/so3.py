@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam._batched import matmul
 from torchslam.lie import _series
 
 __all__ = [
@@ -309,7 +310,7 @@ def _jl_inv(omega: Tensor) -> Tensor:
     d = _series.inverse_jacobian_coefficient_d(theta2)
     W = _hat(omega)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye - 0.5 * W + d[..., None, None] * (W @ W)
+    return eye - 0.5 * W + d[..., None, None] * matmul(W, W)
 
 
 def _jl_from_polar(p: _Polar) -> Tensor:
@@ -330,7 +331,7 @@ def _jl_inv_from_polar(p: _Polar) -> Tensor:
     d = torch.where(p.large, 1.0 - half_theta * p.cos_half / p.sin_half, d)
     W = _hat(p.w)
     eye = torch.eye(3, dtype=W.dtype, device=W.device)
-    return eye - h[..., None, None] * W + d[..., None, None] * (W @ W)
+    return eye - h[..., None, None] * W + d[..., None, None] * matmul(W, W)
 
 
 def _jl_inv_robust(omega: Tensor) -> Tensor:

@@ -480,7 +480,7 @@ def masked_constants(term: Term) -> dict[str, Tensor]:
     """The constants of a bound term with those of a valid instance on its padding instances
     (zeros when no instance is valid), by ``torch.where``: what residual() is called with."""
     fill = getattr(term, "_fill_instance", None)
-    if fill is None:  # not bound: as given
+    if fill is None or term_all_valid(term):  # not bound, or no padding: as given
         return dict(term.constants)
     B, K = term.valid.shape
     out = {}
@@ -690,8 +690,8 @@ def relative_pose_residual(
       Z_ij ≈ T_i⁻¹ T_j. With T = T0⁻¹ both are the same number.
     """
     if convention == "frame_to_world":
-        return se3.log(se3.inverse(Z_ij) @ (se3.inverse(T_i) @ T_j))
-    return se3.log(se3.inverse(Z_ij) @ T_i @ se3.inverse(T_j))
+        return se3.log(matmul(se3.inverse(Z_ij), matmul(se3.inverse(T_i), T_j)))
+    return se3.log(matmul(matmul(se3.inverse(Z_ij), T_i), se3.inverse(T_j)))
 
 
 def relative_pose_jacobians(
@@ -704,7 +704,7 @@ def relative_pose_jacobians(
     Jr_inv = se3.jr_inv(r, form="fast")
     if convention == "frame_to_world":
         # E = Z⁻¹ T_i⁻¹ T_j: ∂r/∂δ_j = Jr⁻¹(r), ∂r/∂δ_i = −Jr⁻¹(r)·Ad(T_j⁻¹ T_i).
-        J_i = -matmul(Jr_inv, se3.adjoint(se3.inverse(T_j) @ T_i))
+        J_i = matmul(-Jr_inv, se3.adjoint(matmul(se3.inverse(T_j), T_i)))
         return r, J_i, Jr_inv
     J_i = matmul(Jr_inv, se3.adjoint(T_j))
     return r, J_i, -J_i
@@ -713,7 +713,7 @@ def relative_pose_jacobians(
 def pose_prior_residual(T: Tensor, Z: Tensor) -> Tensor:
     """r = Log(Z⁻¹ · T), ξ = (ω, v), zero when T = Z; poses (…, 4, 4) in either convention
     (as long as Z is in the same one) → (…, 6)."""
-    return se3.log(se3.inverse(Z) @ T)
+    return se3.log(matmul(se3.inverse(Z), T))
 
 
 class RelativePoseTerm(Term):
@@ -940,6 +940,23 @@ def term_free_poses(term: Term, fixed_poses: Tensor) -> Tensor | None:
         return None if bool(free.all()) else free
 
     return _cached(term, "_free_poses_cache", (term.pose_index, fixed_poses), compute)
+
+
+def term_fixed_rows(term: Term, fixed_poses: Tensor) -> tuple[Tensor, Tensor] | None:
+    """The instances of a term that touch a fixed pose, as (rows, free): rows (R,) long, their
+    flat index b·K + k, and free (R, a) bool, which of their poses are free; None when no
+    instance touches a fixed pose. Usually a handful (the gauge's edges): masking those rows
+    is cheaper than a pass over every instance. Cached per term."""
+
+    def compute() -> tuple[Tensor, Tensor] | None:
+        free = term_free_poses(term, fixed_poses)
+        if free is None:
+            return None
+        free = free.reshape(-1, free.shape[-1])
+        rows = torch.nonzero(~free.all(-1))[:, 0]
+        return rows, free[rows]
+
+    return _cached(term, "_fixed_rows_cache", (term.pose_index, fixed_poses), compute)
 
 
 def term_whitening(term: Term) -> Tensor | None:

@@ -59,11 +59,10 @@ from torchslam.objective.data import (
 )
 from torchslam.objective.terms import (
     Term,
-    masked_weighting,
     point_observation_jacobians,
     term_all_valid,
     term_blocks,
-    term_free_poses,
+    term_fixed_rows,
     term_points,
     term_poses,
     term_whitening,
@@ -280,8 +279,10 @@ def linearize(
     factor: Tensor | None,
     jacobian_mode: str = "analytic",
     structured: bool = True,
+    poses: Tensor | None = None,
 ) -> BlockLinearization | StructuredLinearization:
-    """Normal-equation blocks at (pose_tangent (B, m, 6), points (B, n, 3)).
+    """Normal-equation blocks at (pose_tangent (B, m, 6), points (B, n, 3)); ``poses`` are the
+    matrices Exp(ξ) (B, m, 4, 4) when the caller has them (the retraction's), else computed.
 
     The structured form is used when ``structured`` and the problem allows it (scalar weights,
     analytic Jacobians, no curvature-corrected robust observation, no term that touches a
@@ -289,7 +290,8 @@ def linearize(
     (its information matrices' factors are reused; scalar weights are read from ``data``).
     """
     structured = structured and not point_terms(data)
-    poses = se3.exp(pose_tangent, form="fast")
+    if poses is None:
+        poses = se3.exp(pose_tangent, form="fast")
     lin = _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured)
     lin.poses = poses
     if not data.terms:
@@ -313,6 +315,8 @@ def linearize(
 
 
 def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured):
+    if data.pose_index.shape[1] == 0 and structured and data.information is None:
+        return _no_observations(poses, points, data)
     r, T_e, X_e = _residuals(poses, points, data)
     free_pose = ~torch.gather(data.fixed_poses, 1, data.pose_index)
     free_point = ~torch.gather(data.fixed_points, 1, data.point_index)
@@ -376,6 +380,27 @@ def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
     )
 
 
+def _no_observations(poses, points, data):
+    """The structured form of a problem without point observations (a pose graph): what
+    :func:`_structured` gives for E = 0, without its passes over empty tensors."""
+    B, m, n = poses.shape[0], data.num_poses, data.num_points
+    eye6 = torch.eye(6, dtype=poses.dtype, device=poses.device)
+    empty = poses.new_zeros(B, 0)
+    no_mask = data.valid.new_zeros(B, 0)
+    return StructuredLinearization(
+        cost=poses.new_zeros(B),
+        pose_gradient=poses.new_zeros(B, m, 6),
+        point_gradient=poses.new_zeros(B, n, 3),
+        pose_blocks=data.fixed_poses[..., None, None] * eye6,
+        point_weight=data.fixed_points.to(poses.dtype),
+        weight=empty,
+        coupling_weight=empty,
+        points=points,
+        free_pose=no_mask,
+        free_point=no_mask,
+    )
+
+
 def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
     """The point observations in the block form: :func:`instance_blocks` with one pose and
     one point per instance (the observations as a :class:`~torchslam.terms.PointObservationTerm`
@@ -421,7 +446,8 @@ def instance_blocks(
     weight: Tensor | None,
     loss: object | None,
     all_valid: bool = False,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor, Tensor]:
+    products: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
     """Whiten, robustify and multiply out K instances of one residual: the one routine of the
     block form, for the point observations and for every term.
 
@@ -440,10 +466,11 @@ def instance_blocks(
         weight: scalar weights w (B, K) (1 on padding), or None.
         loss: robust kernel ρ, or None.
         all_valid: the caller knows no instance is padding (skips the masking copies).
+        products: compute J̃ᵀJ̃·w; with False it is None (the caller forms its blocks).
 
     Returns:
         (cost ½ Σ ρ(s) (B,), r̃ (B, K, d), J̃ (B, K, d, c), w (B, K) with 0 on padding or None,
-        J̃ᵀJ̃·w (B, K, c, c), J̃ᵀr̃·w (B, K, c)); everything zero on padding.
+        J̃ᵀJ̃·w (B, K, c, c) or None, J̃ᵀr̃·w (B, K, c)); everything zero on padding.
     """
     valid_r, valid_J = valid[..., None], valid[..., None, None]
     if not all_valid:
@@ -476,7 +503,8 @@ def instance_blocks(
     Jt = J.transpose(-1, -2)
     if weight is not None:
         Jt = weight[..., None, None] * Jt
-    return cost, r, J, weight, matmul(Jt, J), matmul(Jt, r[..., None])[..., 0]
+    JtJ = matmul(Jt, J) if products else None
+    return cost, r, J, weight, JtJ, matmul(Jt, r[..., None])[..., 0]
 
 
 def term_pair_keys(data: PointMapData) -> Tensor:
@@ -518,40 +546,46 @@ def linearize_terms(
         r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode)
         K, a = term.pose_index.shape[1:]
         slots = batch[..., None] * m + term.pose_index  # (B, K, a)
-        free = term_free_poses(term, data.fixed_poses)
-        if free is not None:  # the columns of fixed poses are zero
-            J = J * free[:, :, None, :, None]
+        fixed = term_fixed_rows(term, data.fixed_poses)
+        if fixed is not None:  # the columns of fixed poses are zero (on those rows only)
+            rows, free = fixed
+            flat = J.reshape(B * K, *J.shape[2:])
+            J = flat.index_copy(0, rows, flat[rows] * free[:, None, :, None]).reshape(J.shape)
         J = J.flatten(-2)  # (B, K, d, 6a)
         if has_point:
             point_slots = batch * n + term.point_index  # (B, K)
             free_point = ~data.fixed_points.reshape(-1)[point_slots]
             J = torch.cat((J, J_point * free_point[..., None, None]), -1)
+        all_valid = term_all_valid(term)
         whitening = term_whitening(term) if term.information is not None else None
-        weight = masked_weighting(term)[0]
-        term_cost, _, Jw, scale, JtJ, Jtr = instance_blocks(
-            r, J, term.valid, whitening, weight, term.loss, all_valid=term_all_valid(term)
+        weight = term.weight
+        if weight is not None and not all_valid:
+            weight = torch.where(term.valid, weight, 1.0)
+        term_cost, _, Jw, scale, _, Jtr = instance_blocks(
+            r, J, term.valid, whitening, weight, term.loss, all_valid=all_valid, products=False
         )
         cost = cost + term_cost
         jacobians.append(Jw)
         scales.append(term.valid.to(r.dtype) if scale is None else scale)
-        P = 6 * a
-        H = JtJ[..., :P, :P].reshape(B, K, a, 6, a, 6)
-        idx = torch.arange(a, device=poses.device)
-        # (a, B, K, 6, 6): advanced indices on dims 2 and 4 go first.
-        diagonal.index_add_(
-            0, slots.permute(2, 0, 1).reshape(-1), H[:, :, idx, :, idx].reshape(-1, 6, 6)
+        P, d = 6 * a, Jw.shape[-2]
+        Jt = Jw.transpose(-1, -2)
+        if scale is not None:  # w on one side only (the products are symmetric to round-off)
+            Jt = scale[..., None, None] * Jt
+        # H[a, b] = J̃_aᵀJ̃_b·w of every instance, (a, a, B, K, 6, 6): each block contiguous.
+        H = matmul(
+            Jt[..., :P, :].reshape(B, K, a, 6, d).permute(2, 0, 1, 3, 4)[:, None],
+            Jw[..., :P].reshape(B, K, d, a, 6).permute(3, 0, 1, 2, 4)[None],
         )
-        gradient.index_add_(0, slots.reshape(-1), Jtr[..., :P].reshape(-1, 6))
         for i in range(a):
-            for j in range(a):
-                if i != j:
-                    pairs.append(H[:, :, i, :, j])
+            diagonal.index_add_(0, slots[..., i].reshape(-1), H[i, i].reshape(-1, 6, 6))
+        gradient.index_add_(0, slots.reshape(-1), Jtr[..., :P].reshape(-1, 6))
+        pairs.extend(H[i, j] for i in range(a) for j in range(a) if i != j)
         if has_point:
             point_gradient.index_add_(0, point_slots.reshape(-1), Jtr[..., P:].reshape(-1, 3))
             point_diagonal.index_add_(
-                0, point_slots.reshape(-1), JtJ[..., P:, P:].reshape(-1, 3, 3)
+                0, point_slots.reshape(-1), matmul(Jt[..., P:, :], Jw[..., P:]).reshape(-1, 3, 3)
             )
-            couplings.append(JtJ[..., :P, P:].reshape(B, K * a, 6, 3))
+            couplings.append(matmul(Jt[..., :P, :], Jw[..., P:]).reshape(B, K * a, 6, 3))
     pair_blocks = torch.cat(pairs, dim=1) if pairs else poses.new_zeros(B, 0, 6, 6)
     coupling = torch.cat(couplings, dim=1) if couplings else poses.new_zeros(B, 0, 6, 3)
     return TermLinearization(

@@ -41,14 +41,16 @@ _POSES = manifold.SE3Tangent()
 
 def retract(
     pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor, poses: Tensor | None = None
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """x ⊞ δ: ξ ← Log(Exp(ξ)·Exp(δp)) (seed eq. L1/L2, :class:`torchslam.manifold.SE3Tangent`),
-    X ← X + δl; ``poses``: Exp(ξ) when the caller has it (the linearization's).
+    X ← X + δl; ``poses``: Exp(ξ) when the caller has it (the linearization's). Returns
+    (ξ, X, T) with T = Exp(ξ)·Exp(δp), the matrices the next linearization is taken at.
 
-    A pose whose step is exactly zero (a fixed pose) keeps its ξ bit for bit: the Log∘Exp
-    round trip would move it by a few ulps.
+    A pose whose step is exactly zero (a fixed pose) keeps its ξ and T bit for bit: the
+    Log∘Exp round trip would move it by a few ulps.
     """
-    return _POSES.retract(pose_tangent, dp, exp_x=poses), points + dl
+    xi, T = _POSES.retract(pose_tangent, dp, exp_x=poses, with_exp=True)
+    return xi, points + dl, T
 
 
 @dataclass
@@ -228,8 +230,8 @@ def iterate(
             ok = factorization.ok
         tock = time.perf_counter()
         solve_seconds += tock - tick
-        xi_new, X_new = retract(xi, X, dp, dl, lin.poses)
-        lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured)
+        xi_new, X_new, T_new = retract(xi, X, dp, dl, lin.poses)
+        lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured, T_new)
         linearize_seconds += time.perf_counter() - tock
         with torch.no_grad():
             # The decisions: constants of the graph.
