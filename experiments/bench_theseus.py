@@ -13,8 +13,9 @@ from any other interpreter, the script re-runs itself there with ``PYTHONPATH`` 
 imported it prints one ``skipped:`` line and exits 0. Theseus is never a dependency.
 
 torchslam is timed exactly as ``torchslam bench`` times it (:func:`torchslam.benchmark.run_case`:
-the whole solve including problem construction, default ``SolverConfig()``, median of the
-repeats after a warm-up run).
+the whole solve including problem construction, default ``SolverConfig()``, after a warm-up
+run). The two libraries alternate, one torchslam run and one Theseus run per round, and the
+table gives the medians over the rounds (``--repeats``).
 
 Theseus is used as a Theseus user would: one ``th.SE3`` variable per pose (pose 0, the gauge,
 is an auxiliary variable, not optimized), one ``th.Point3`` per point, one cost function per
@@ -32,7 +33,7 @@ implicit gradient) with the observations as differentiable inputs.
 
 Theseus times: "setup" builds the objective, optimizer and layer (vectorization and CHOLMOD's
 symbolic analysis included) once per case; "solve" is one ``TheseusLayer.forward`` from the
-initial values (plus the loss and backward for TRAIN), median of the repeats after a warm-up.
+initial values (plus the loss and backward for TRAIN), after one warm-up forward.
 The ratio is Theseus solve / torchslam whole solve, i.e. it leaves Theseus's setup out (in a
 training loop the layer is built once). Costs are ½ Σ ‖z − T·X‖² over the observations,
 evaluated by the same function on both solutions. For TRAIN the gradients with respect to the
@@ -283,49 +284,63 @@ def point_cost(scene, poses: torch.Tensor, points: torch.Tensor) -> float:
 # ---------------------------------------------------------------------------------- cases
 
 
-def run_theseus(case: str, repeats: int) -> dict:
-    from torchslam.benchmark import build, scene_tangent
+def run_pair(case: str, repeats: int) -> tuple[dict, dict]:
+    """Both libraries on ``case``, alternating: each round runs torchslam's timed solve
+    (:func:`torchslam.benchmark.run_case` with one repeat after its own warm-up run, i.e. the
+    measurement of ``torchslam bench``) and then one Theseus solve; medians over the rounds.
+    Theseus's layer is built (timed as setup) and warmed up once before the rounds."""
+    from torchslam.benchmark import build, run_case, scene_tangent
 
     scene, init, _ = build(case)
+    target = scene_tangent(scene)
     t = time.perf_counter()
     problem = TheseusProblem(scene, init)
     setup = time.perf_counter() - t
-    target = scene_tangent(scene)
-    times, backward = [], []
-    for _ in range(repeats + 1):  # the first run warms up
-        t = time.perf_counter()
+
+    def theseus_once():
         if case == "TRAIN":
-            solution, info, grad, backward_s = problem.training_step(target)
-            backward.append(backward_s)
-        else:
-            solution, info = problem.solve()
-        times.append(time.perf_counter() - t)
+            return problem.training_step(target)
+        return (*problem.solve(), None, 0.0)
+
+    theseus_once()  # warm-up
+    ours_times, ours_backward, theirs_times, theirs_backward = [], [], [], []
+    for _ in range(repeats):
+        timed = run_case(case, 1, rate=1.0, with_scipy=False)
+        ours_times.append(timed["median_s"])
+        ours_backward.append(timed.get("backward_s", 0.0))
+        t = time.perf_counter()
+        solution, info, grad, backward_s = theseus_once()
+        theirs_times.append(time.perf_counter() - t)
+        theirs_backward.append(backward_s)
     poses = pose_matrices(problem, solution).detach()
     points = torch.stack([solution[f"X{j}"] for j in range(problem.n)], dim=1).detach()
-    row = {
+    theirs = {
         "setup_s": setup,
-        "solve_s": statistics.median(times[1:]),
+        "solve_s": statistics.median(theirs_times),
+        "backward_s": statistics.median(theirs_backward),
         "iterations": int(info.converged_iter.max()),
         "status": sorted({str(s).split(".")[-1] for s in info.status}),
         "cost": point_cost(scene, poses, points),
         "pairs": problem.P,
     }
+    ours = torchslam_solution(case)
+    ours["solve_s"] = statistics.median(ours_times)
+    ours["backward_s"] = statistics.median(ours_backward)
+    ours["iterations"] = timed["iterations"]
     if case == "TRAIN":
-        row["backward_s"] = statistics.median(backward[1:])
-        row["grad"] = grad[scene.valid]
-    return row
+        theirs["grad"] = grad[scene.valid]
+    return ours, theirs
 
 
-def run_torchslam(case: str, repeats: int) -> dict:
+def torchslam_solution(case: str) -> dict:
+    """Cost (and for TRAIN the observations' gradient, as training_step computes it) of
+    torchslam's solution, untimed."""
     import torchslam as ts
-    from torchslam.benchmark import build, run_case, scene_tangent
+    from torchslam.benchmark import build, scene_tangent
 
-    timed = run_case(case, repeats, rate=1.0, with_scipy=False)
     scene, init, loss = build(case)
-    row = {"solve_s": timed["median_s"], "iterations": timed["iterations"]}
+    row = {}
     if case == "TRAIN":
-        # training_step's computation, with the observations' gradient kept for comparison.
-        row["backward_s"] = timed["backward_s"]
         observations = scene.observations.clone().requires_grad_(True)
         problem = ts.PointMapProblem(
             init.poses,
@@ -361,8 +376,7 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(threads)
         for case in args.cases:
             repeats = args.repeats or REPEATS[case]
-            ours = run_torchslam(case, repeats)
-            theirs = run_theseus(case, repeats)
+            ours, theirs = run_pair(case, repeats)
             row = {"case": case, "threads": threads, "ours": ours, "theirs": theirs}
             if case == "TRAIN":
                 difference = (theirs["grad"] - ours["grad"]).norm() / ours["grad"].norm()
