@@ -1,10 +1,10 @@
 """Issue 16: torchslam vs Theseus (LM + CHOLMOD) on the cases of ``torchslam bench``.
 
 Cases (the same synthetic problems as :func:`torchslam.benchmark.build`: same seeds, same
-drifted-odometry start): S (11 frames counted with the anchor, here m = 10 poses and n = 200
-points), M (50, 1,000), BATCH (64 × S), TRAIN (BATCH forward + implicit backward to the
+drifted-odometry start): S (m = 10 poses, n = 200 points, 1,400 observations), M (50 poses,
+1,000 points, 15,000), BATCH (64 × S), TRAIN (BATCH forward + implicit backward to the
 observations, a loss on the poses as in :func:`torchslam.benchmark.training_step`) and, with
-``--large``, L (200, 5,000; 100k observations: minutes for Theseus).
+``--large``, L (200 poses, 5,000 points, 100k observations: minutes for Theseus).
 
 How it runs: both libraries in ONE process of the peers venv (``/work/peers-venv``, torch
 2.13 as in the project venv), torchslam imported from this checkout (``PYTHONPATH``). Started
