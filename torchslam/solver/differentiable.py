@@ -32,13 +32,18 @@ loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Fou
       H w = (jr_inv(ξ*)ᵀ ḡ_ξ, ḡ_X)      and returns      θ̄ = −(∂g/∂θ)ᵀ w,
 
   one linear solve per backward, whatever the number of iterations (memory O(E + m² + n)).
-  ``H`` is solved with the forward pass's Schur machinery: the Gauss-Newton matrix JᵀJ at x*
-  is factored once by :meth:`torchslam.solver.plan.LinearPlan.factorize` (λ = 0; dense Cholesky or
-  the sparse factorization, as the forward solve) and solved for the right-hand side; with
-  ``ImplicitConfig(hessian="exact")`` (default) that solve
-  preconditions conjugate gradients on the exact Hessian (Hessian-vector products by double
-  backward), which the unrolled gradient converges to — JᵀJ alone drops the Σ r ∇²r and ρ''
-  terms, an O(residual) error. Fixed variables keep their given values: the initial guess
+  ``H`` is solved with the forward pass's Schur machinery, factored once (λ = 0; dense
+  Cholesky or the sparse factorization, as the forward solve, by the forward's
+  :class:`torchslam.solver.plan.LinearPlan`). With ``ImplicitConfig(hessian="exact")``
+  (default) H is the exact Hessian, which the unrolled gradient converges to, assembled
+  in the forward's block structure by :func:`torchslam.solver.hessian.exact_hessian`: the
+  robust-corrected Gauss-Newton part Jᵀ(ρ'Ω + 2ρ''(Ωr)(Ωr)ᵀ)J plus the second-order part
+  Σ ρ'(Ωr)ₖ∇²rₖ (analytic for the point observations, ``torch.func`` for the terms). Where
+  it does not factor (not positive definite: a singular or indefinite problem), that problem
+  falls back to conjugate gradients on the exact Hessian (Hessian-vector products by double
+  backward) preconditioned by the Gauss-Newton solve. ``hessian="gauss_newton"`` solves with
+  JᵀJ alone: cheaper, but it drops the Σ r∇²r and ρ'' terms, an O(residual) error.
+  Fixed variables keep their given values: the initial guess
   receives the identity there, plus the effect of moving a fixed variable (e.g. the gauge
   pose) on the free solution; elsewhere the solution does not depend on the initial guess.
   The theorem needs a converged, non-degenerate minimum: see *Unconverged problems* below.
@@ -102,6 +107,7 @@ from torchslam.manifold import SE3Matrix
 from torchslam.objective.data import PointMapData, cost, cost_from_poses
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_implicit_config
+from torchslam.solver.hessian import exact_hessian
 from torchslam.solver.linearize import linearize, whitening_factors
 from torchslam.solver.plan import LinearPlan
 from torchslam.solver.result import SolveResult
@@ -122,13 +128,15 @@ _MATRIX = SE3Matrix()
 class ImplicitConfig:
     """Options of the implicit backward of :func:`solve_differentiable`."""
 
-    # H in H w = v: "exact" (conjugate gradients on the exact Hessian, Hessian-vector products
-    # by double backward, preconditioned by the Gauss-Newton Schur solve) or "gauss_newton"
-    # (the Schur solve with JᵀJ alone: cheaper, exact only for zero-residual problems).
+    # H in H w = v: "exact" (the exact Hessian assembled in the forward's block structure and
+    # factored once by its Schur solve; conjugate gradients with Hessian-vector products by
+    # double backward, preconditioned by the Gauss-Newton solve, for a problem whose exact
+    # Hessian is not positive definite) or "gauss_newton" (the Schur solve with JᵀJ alone:
+    # cheaper, exact only for zero-residual problems).
     hessian: Literal["exact", "gauss_newton"] = "exact"
-    # Conjugate gradients stop in a problem when its ‖H w − v‖ ≤ tolerance · ‖v‖.
+    # The conjugate-gradient fallback stops in a problem when ‖H w − v‖ ≤ tolerance · ‖v‖.
     tolerance: float = 1e-10
-    # At most this many conjugate-gradient iterations (each one Hessian-vector product).
+    # At most this many fallback iterations (each one Hessian-vector product).
     max_iterations: int = 100
 
     def __post_init__(self) -> None:
@@ -505,21 +513,37 @@ def _solve_hessian(
 ) -> tuple[Tensor, Tensor]:
     """w = H⁻¹ v per problem; H the Hessian of F in the chart at δ = 0 (module doc).
 
-    The Gauss-Newton matrix JᵀJ at x* is solved with the forward pass's Schur machinery
-    (:meth:`torchslam.solver.plan.LinearPlan.factorize` with λ = 0, factored once, then
-    solved with −v in place of the gradient, so its step −(JᵀJ)⁻¹(−v) is the solution). For
-    the exact Hessian that solve preconditions conjugate gradients, batched with per-problem
-    step sizes.
+    Exact (default): H assembled in the forward's block structure (:mod:`.hessian`) and
+    factored once by the forward pass's plan (:meth:`torchslam.solver.plan.LinearPlan.
+    factorize` with λ = 0, or its GEMM variant for dense co-visibility), then solved with −v
+    in place of the gradient (its step −H⁻¹(−v) is the solution). Problems whose H does not
+    factor (not positive definite) fall back to conjugate gradients on the exact Hessian
+    (Hessian-vector products by double backward), preconditioned by the Gauss-Newton solve,
+    batched with per-problem step sizes. Gauss-Newton: that preconditioner alone (JᵀJ at x*
+    factored once the same way).
     """
     config, options = spec.config, spec.implicit
+    plan = LinearPlan.build(data, config)
+    lam = xi_star.new_zeros(xi_star.shape[0])
+    fallback = None
+    if options.hessian == "exact":
+        w_exact, ok = _exact_solve(plan, data, xi_star, X_star, v, config)
+        if bool(ok.all()):
+            return w_exact
+        # H is not positive definite for some problem (singular: a point whose residuals all
+        # lie beyond a redescending kernel's reach; indefinite: not a strict minimum, e.g. an
+        # unconverged iterate under on_unconverged="implicit"): those problems run the
+        # conjugate gradients below; the others start converged (v = 0 there) and keep the
+        # direct solution.
+        fallback = ~ok
+        v = tuple(torch.where(fallback[:, None, None], x, 0.0) for x in v)
     with torch.no_grad():
         # Factor JᵀJ at x* once (dense or sparse, as the forward solve); every conjugate-
         # gradient iteration then reuses the factorization (two triangular solves).
         factor = whitening_factors(data)
         structured = config.linear_solver == "schur"
         lin = linearize(xi_star, X_star, data, factor, config.jacobian, structured)
-        lam = xi_star.new_zeros(xi_star.shape[0])
-        gauss_newton = LinearPlan.build(data, config).factorize(lin, lam)
+        gauss_newton = plan.factorize(lin, lam)
 
     def precondition(r: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
         with torch.no_grad():
@@ -569,7 +593,37 @@ def _solve_hessian(
         rz_new = _dot(r, z)
         p = axpy(safe_ratio(rz_new, rz), p, z)
         rz = rz_new
+    if fallback is not None:
+        w = tuple(
+            torch.where(fallback[:, None, None], a, b) for a, b in zip(w, w_exact, strict=True)
+        )
     return w
+
+
+def _exact_solve(
+    plan: LinearPlan,
+    data: PointMapData,
+    xi_star: Tensor,
+    X_star: Tensor,
+    v: tuple[Tensor, Tensor],
+    config: SolverConfig,
+) -> tuple[tuple[Tensor, Tensor], Tensor]:
+    """(w = H⁻¹v, ok (B,)) with the exact Hessian H (:mod:`.hessian`) factored once by the
+    forward's plan (λ = 0); w is zero where ``ok`` is False (H not positive definite, or a
+    non-finite solution)."""
+    with torch.no_grad():
+        hessian = exact_hessian(xi_star, X_star, data, config.jacobian)
+        lam = xi_star.new_zeros(xi_star.shape[0])
+        if plan.coupling_gemm_pays():
+            factorization = plan.factorize_coupling_gemm(hessian, lam)
+        else:
+            factorization = plan.factorize(hessian, lam)
+        # The step for the gradient −v is H⁻¹v.
+        wp, wl = factorization.solve(-v[0], -v[1])
+        ok = factorization.ok & torch.isfinite(wp).flatten(1).all(-1)
+        ok = ok & torch.isfinite(wl).flatten(1).all(-1)
+        w = (torch.where(ok[:, None, None], wp, 0.0), torch.where(ok[:, None, None], wl, 0.0))
+    return w, ok
 
 
 def _solve_implicit(

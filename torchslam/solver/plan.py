@@ -25,7 +25,10 @@ the same point: the pair (a, b) with poses (i_a ≤ i_b) adds −Y_a W_bᵀ, Y_a
 upper block (i_a, i_b); the terms' pose pairs add their blocks J̃_aᵀJ̃_b. Memory is
 O(E + P + pattern) with P = Σ_j (edges of j)², processed in chunks; the dense (6m+3n)² matrix
 is formed only by the "dense" method. A problem whose matrix is not positive definite is
-reported (``ok`` False, zero step), never crashes the batch.
+reported (``ok`` False, zero step), never crashes the batch. For dense co-visibility with a
+dense reduced system, :meth:`LinearPlan.factorize_coupling_gemm` forms the points' part of S
+by one GEMM of the (6m × 3n) coupling matrix instead of per-pair products (the implicit
+backward's exact Hessian uses it; the forward solve keeps :meth:`LinearPlan.factorize`).
 
 Adding a reduced solver means writing one class with the interface of :class:`DenseReduced`
 (``slots``, ``num_slots``, ``factor``) and choosing it in :meth:`LinearPlan.build`.
@@ -511,6 +514,71 @@ class LinearPlan:
                 prod = torch.where(mirror[:, None, None], prod + prod.transpose(-1, -2), prod)
                 upper = upper.index_add(0, slots[sl], -prod)
         return Factorization(self.reduced.factor(upper, None, definite), elim, point_ok, self.shape)
+
+    def coupling_gemm_pays(self) -> bool:
+        """Whether :meth:`factorize_coupling_gemm` applies (Schur method, dense reduced
+        system) and pays: the points' part of S by one GEMM costs 216·m²·n flops per problem,
+        the per-pair products 216 per pair of edges sharing a point (≈ E'²/(2n) for uniform
+        visibility) but ~50× slower per flop (tiny batched products and scatters), so the
+        GEMM wins from a co-visibility density E'/(m·n) of about 1/5 on."""
+        if self.method != "schur" or self.sparse:
+            return False
+        _, m, n = self.shape
+        return n > 0 and 5 * self.edges.pose_index.shape[1] >= m * n
+
+    def factorize_coupling_gemm(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
+        """:meth:`factorize` of a block linearization for a dense reduced system, with the
+        points' part of S formed by GEMM instead of per-pair products: the couplings summed
+        into a dense (6m × 3n) matrix W per problem (edges of one pose and point add up), then
+        S −= (W V⁻¹) Wᵀ, chunked over the points so that a chunk's W stays within
+        ``STRUCTURED_CHUNK_ENTRIES`` entries. The same matrix as :meth:`factorize` up to
+        rounding (the implicit backward's exact Hessian uses it, :mod:`.hessian`)."""
+        if self.method != "schur" or self.sparse:
+            raise ValueError(
+                "LinearPlan.factorize_coupling_gemm: needs the Schur method with a dense "
+                "reduced system"
+            )
+        B, m, n = self.shape
+        U = damp(lin.pose_blocks, lam, self.damping)
+        upper = U.new_zeros(self.reduced.num_slots, 6, 6)
+        upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
+        has_pairs = lin.terms is not None and self.term_positions.numel() > 0
+        if has_pairs:
+            blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_positions]
+            upper = upper.index_add(0, self.term_slots, blocks)
+        batch = torch.arange(B, device=U.device)[:, None]
+        pose_slot = (batch * m + self.edges.pose_index).reshape(-1)
+        point_slot = (batch * n + self.edges.point_index).reshape(-1)
+        V = damp(lin.point_blocks, lam, self.damping)
+        LV, info = torch.linalg.cholesky_ex(V)
+        point_ok = (info == 0).all(dim=-1)
+        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
+        V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
+        W = lin.coupling.reshape(-1, 6, 3)
+        elim = _BlockElimination(W, V_inv, pose_slot, point_slot, self.shape)
+        Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
+        pose_index, point_index = self.edges.pose_index, self.edges.point_index
+        chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 18 * m)))
+        C = U.new_zeros(B, 6 * m, 6 * m)
+        for start in range(0, n, chunk):
+            c = min(chunk, n - start)
+            if c == n:
+                inside, local = None, point_index
+            else:
+                inside = ((point_index >= start) & (point_index < start + c)).reshape(-1)
+                local = (point_index - start).clamp(0, c - 1)
+            slots = ((batch * m + pose_index) * c + local).reshape(-1)
+            dense = []
+            for blocks in (W, Y):
+                values = (
+                    blocks if inside is None else torch.where(inside[:, None, None], blocks, 0.0)
+                )
+                D = blocks.new_zeros(B * m * c, 6, 3).index_add_(0, slots, values)
+                dense.append(D.reshape(B, m, c, 6, 3).transpose(2, 3).reshape(B, 6 * m, 3 * c))
+            C = C.baddbmm(dense[1], dense[0].transpose(1, 2), alpha=-1.0)
+        dense = C.reshape(B, m, 6, m, 6).transpose(2, 3)
+        factor = self.reduced.factor(upper, dense, False, mirror=has_pairs)
+        return Factorization(factor, elim, point_ok, self.shape)
 
     def _pairs(self) -> PairStructure:
         if self.pairs is None:
