@@ -112,7 +112,7 @@ def run_case(case: str, repeats: int, rate: float, with_scipy: bool) -> dict:
         "min_s": min(times),
         "iterations": iterations,
         "per_iteration_s": per_iteration,
-        "final_cost": float(result.final_cost.sum()),
+        "final_cost": float(result.final_cost.detach().sum()),
         "status": sorted({s.name for s in result.status}),
         "initial_rotation_error_deg": errors0.mean_rotation_error_deg,
         "rotation_error_deg": errors.mean_rotation_error_deg,
