@@ -1,6 +1,8 @@
 """Guards added after review: modes that must not poison caches, convention mixes that must be
 refused, shapes that must match."""
 
+import math
+
 import pytest
 import torch
 
@@ -59,3 +61,20 @@ def test_tum_timestamps_stay_float64(tmp_path):
     trajectories.write_trajectory(path, poses, "tum", timestamps=times)
     _, _, read = trajectories.read_trajectory(path, dtype=torch.float32)
     assert read.dtype == F64 and read.tolist() == times
+
+
+def test_small_block_products_propagate_nan_and_inf_without_warnings():
+    """The NumPy path of the small-block products behaves as torch's @ on non-finite input:
+    NaN and Inf propagate, and no floating-point warning escapes (users run with -W error)."""
+    import warnings
+
+    from torchslam._batched import matmul
+
+    a = torch.tensor([[[math.nan, 1.0], [1e308, 1e308]]], dtype=F64)
+    b = torch.tensor([[[1.0, 0.0], [1e308, 1.0]]], dtype=F64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        product = matmul(a, b)
+    expected = a @ b
+    assert torch.equal(product.isnan(), expected.isnan())
+    assert torch.equal(product.isinf(), expected.isinf())

@@ -30,9 +30,10 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
         and not torch._C._functorch.is_functorch_wrapped_tensor(b)
     ):
         # A transposed view makes NumPy take its slow strided loop: copy it first (cheaper).
-        return torch.from_numpy(
-            np.matmul(
+        # NaN and Inf propagate as in torch, without NumPy's floating-point warnings.
+        with np.errstate(all="ignore"):
+            product = np.matmul(
                 np.ascontiguousarray(a.detach().numpy()), np.ascontiguousarray(b.detach().numpy())
             )
-        )
+        return torch.from_numpy(product)
     return a @ b
