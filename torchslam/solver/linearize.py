@@ -50,7 +50,7 @@ from torch import Tensor
 
 from torchslam import losses
 from torchslam._batched import matmul
-from torchslam.lie import se3, so3
+from torchslam.lie import se3
 from torchslam.objective.data import (
     PointMapData,
     gather_points,
@@ -635,7 +635,7 @@ def model_decrease(
         # J̃δ = √w · (−R)(δX + δω × X + δv): its norm needs no R.
         u = (
             dl_e * lin.free_point[..., None]
-            + (so3.hat(dp_e[..., :3]) @ X_e[..., None])[..., 0] * lin.free_pose[..., None]
+            + torch.linalg.cross(dp_e[..., :3], X_e, dim=-1) * lin.free_pose[..., None]
             + dp_e[..., 3:] * lin.free_pose[..., None]
         )
         quad = (lin.weight * (u * u).sum(-1)).sum(-1)
