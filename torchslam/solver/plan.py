@@ -453,21 +453,11 @@ class LinearPlan:
                     "LinearPlan.factorize: the 'dense' method needs the block linearization"
                 )
             return self._factorize_full(lin, lam)
-        B, m, n = self.shape
+        n = self.shape[2]
         # Damped (λ > 0): JᵀJ + λD is positive definite, so is its Schur complement S.
         definite = self.sparse and bool((lam > 0).all())
-        U = damp(lin.pose_blocks, lam, self.damping)
-        upper = U.new_zeros(self.reduced.num_slots, 6, 6)
-        upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
-        if lin.terms is not None and self.term_positions.numel() > 0:
-            blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_positions]
-            upper = upper.index_add(0, self.term_slots, blocks)
-        pose_slot = (torch.arange(B, device=U.device)[:, None] * m + self.edges.pose_index).reshape(
-            -1
-        )
-        point_slot = (
-            torch.arange(B, device=U.device)[:, None] * n + self.edges.point_index
-        ).reshape(-1)
+        upper = self._pose_side(lin, lam)
+        pose_slot, point_slot = self._edge_slots()
         if isinstance(lin, StructuredLinearization):
             v = lin.point_weight
             if self.damping == "levenberg":
@@ -495,12 +485,7 @@ class LinearPlan:
                 has_pairs = lin.terms is not None and self.term_positions.numel() > 0
                 factor = self.reduced.factor(upper, dense, definite, mirror=has_pairs)
             return Factorization(factor, elim, None, self.shape)
-        V = damp(lin.point_blocks, lam, self.damping)
-        # V⁻¹ through Cholesky of each 3×3 block (a failure marks the whole problem).
-        LV, info = torch.linalg.cholesky_ex(V)
-        point_ok = (info == 0).all(dim=-1)
-        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
-        V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
+        V_inv, point_ok = self._point_inverse(lin, lam)
         W = lin.coupling.reshape(-1, 6, 3)
         elim = _BlockElimination(W, V_inv, pose_slot, point_slot, self.shape)
         pairs = self._pairs()
@@ -539,27 +524,17 @@ class LinearPlan:
                 "reduced system"
             )
         B, m, n = self.shape
-        U = damp(lin.pose_blocks, lam, self.damping)
-        upper = U.new_zeros(self.reduced.num_slots, 6, 6)
-        upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
+        upper = self._pose_side(lin, lam)
         has_pairs = lin.terms is not None and self.term_positions.numel() > 0
-        if has_pairs:
-            blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_positions]
-            upper = upper.index_add(0, self.term_slots, blocks)
-        batch = torch.arange(B, device=U.device)[:, None]
-        pose_slot = (batch * m + self.edges.pose_index).reshape(-1)
-        point_slot = (batch * n + self.edges.point_index).reshape(-1)
-        V = damp(lin.point_blocks, lam, self.damping)
-        LV, info = torch.linalg.cholesky_ex(V)
-        point_ok = (info == 0).all(dim=-1)
-        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
-        V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
+        batch = torch.arange(B, device=upper.device)[:, None]
+        pose_slot, point_slot = self._edge_slots()
+        V_inv, point_ok = self._point_inverse(lin, lam)
         W = lin.coupling.reshape(-1, 6, 3)
         elim = _BlockElimination(W, V_inv, pose_slot, point_slot, self.shape)
         Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
         pose_index, point_index = self.edges.pose_index, self.edges.point_index
         chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 18 * m)))
-        C = U.new_zeros(B, 6 * m, 6 * m)
+        C = upper.new_zeros(B, 6 * m, 6 * m)
         for start in range(0, n, chunk):
             c = min(chunk, n - start)
             if c == n:
@@ -579,6 +554,35 @@ class LinearPlan:
         dense = C.reshape(B, m, 6, m, 6).transpose(2, 3)
         factor = self.reduced.factor(upper, dense, False, mirror=has_pairs)
         return Factorization(factor, elim, point_ok, self.shape)
+
+    def _pose_side(self, lin: BlockLinearization | StructuredLinearization, lam: Tensor) -> Tensor:
+        """The reduced system's upper blocks before the points' part: the damped pose blocks
+        U + λD on the diagonal slots and the terms' pose pairs, (num_slots, 6, 6)."""
+        U = damp(lin.pose_blocks, lam, self.damping)
+        upper = U.new_zeros(self.reduced.num_slots, 6, 6)
+        upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
+        if lin.terms is not None and self.term_positions.numel() > 0:
+            blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_positions]
+            upper = upper.index_add(0, self.term_slots, blocks)
+        return upper
+
+    def _edge_slots(self) -> tuple[Tensor, Tensor]:
+        """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',)."""
+        B, m, n = self.shape
+        batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
+        return (
+            (batch * m + self.edges.pose_index).reshape(-1),
+            (batch * n + self.edges.point_index).reshape(-1),
+        )
+
+    def _point_inverse(self, lin: BlockLinearization, lam: Tensor) -> tuple[Tensor, Tensor]:
+        """(V⁻¹ (B, n, 3, 3), ok (B,)) of the damped point blocks, through the Cholesky factor
+        of each 3×3 block; a failure marks the whole problem (its V⁻¹ block is then I)."""
+        V = damp(lin.point_blocks, lam, self.damping)
+        LV, info = torch.linalg.cholesky_ex(V)
+        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
+        V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
+        return V_inv, (info == 0).all(dim=-1)
 
     def _pairs(self) -> PairStructure:
         if self.pairs is None:
