@@ -287,9 +287,10 @@ class _Matcher:
     to the coordinates covers rounding in the distances.
 
     The second neighbour costs about 15 % more per lookup, and pays only if the points move
-    little before the next pass: lookups ask for it once the motion between passes has at
-    least halved (ICP's steps shrink fast near convergence) or most points kept their
-    answer; otherwise k = 1 and found points get no certificate.
+    little before the next pass: lookups ask for it once the mean motion between passes has
+    at least halved (ICP's steps shrink fast near convergence) or is below a quarter of the
+    gate, or most points kept their answer; otherwise k = 1 and found points get no
+    certificate.
 
     State is kept per batch row (``batch`` runs of the same cloud of ``n`` points).
     """
@@ -328,7 +329,9 @@ class _Matcher:
         keep = np.where(found, delta + slack < margin, margin - delta - slack > gate[:, None])
         kept = int(np.count_nonzero(keep))
         motion = float(delta.mean()) if self.looked_up else math.nan  # NaN: no reference yet
-        k = 2 if motion <= 0.5 * self.motion or 2 * kept >= keep.size else 1
+        reach = float(gate.max())  # the gates are the scale of the expected motions
+        small = motion <= 0.5 * self.motion or (math.isfinite(reach) and motion <= reach / 4)
+        k = 2 if small or 2 * kept >= keep.size else 1
         self.motion, self.looked_up = motion, True
         distance = np.full(index.shape, np.inf)
         if kept:
