@@ -14,6 +14,9 @@ best fraction of the gated correspondences, as in trimmed ICP). Point-to-plane I
 Several initial guesses are run together as one batch (one KD-tree query and one batched
 Kabsch per iteration for all of them); :func:`icp_multistart` keeps the one with the best
 fitness. The ICP loop runs on the host (scipy's KD-tree); it is not meant for jacrev or vmap.
+Near convergence most points skip the KD-tree: a point that moved less than half the gap
+between its nearest and second-nearest target point keeps its nearest one, which is then
+certain (``neighbors._Matcher``); the correspondences are those of a full query.
 
 Voxel grids, nearest neighbours and normals live in :mod:`torchslam.registration.neighbors`;
 :func:`voxel_downsample`, :func:`nearest_neighbors` and :func:`estimate_normals` are also
@@ -476,8 +479,9 @@ def _icp_loop(
     config: ICPConfig,
     target_normals: Tensor | None,
 ) -> ICPResult:
-    """One pass per iteration: a KD-tree query (on :func:`query_workers` threads) for the
-    runs still going, their inlier statistics, the stop tests and the update. A run that
+    """One pass per iteration: nearest neighbours (KD-tree lookups on :func:`query_workers`
+    threads for the points not certain to keep theirs, :class:`_Matcher`) for the runs still
+    going, their inlier statistics, the stop tests and the update. A run that
     stops keeps the correspondences of its last pass (its final statistics need no extra
     query)."""
     batch = initial.shape[0]
