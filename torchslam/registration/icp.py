@@ -14,6 +14,9 @@ best fraction of the gated correspondences, as in trimmed ICP). Point-to-plane I
 Several initial guesses are run together as one batch (one KD-tree query and one batched
 Kabsch per iteration for all of them); :func:`icp_multistart` keeps the one with the best
 fitness. The ICP loop runs on the host (scipy's KD-tree); it is not meant for jacrev or vmap.
+Near convergence most points skip the KD-tree: a point that moved less than half the gap
+between its nearest and second-nearest target point keeps its nearest one, which is then
+certain (``neighbors._Matcher``); the correspondences are those of a full query.
 
 Voxel grids, nearest neighbours and normals live in :mod:`torchslam.registration.neighbors`;
 :func:`voxel_downsample`, :func:`nearest_neighbors` and :func:`estimate_normals` are also
@@ -39,6 +42,8 @@ from torchslam.losses import CauchyLoss, HuberLoss, TukeyLoss
 from torchslam.registration.neighbors import (
     _WORKERS,
     _downsample,
+    _host,
+    _Matcher,
     _normals,
     _query,
     _tree,
@@ -368,16 +373,22 @@ def _point_to_plane_step(
     p' ≈ p + ω × (p − c) + v, r = n·(p − q) + ((p − c) × n)·ω + n·v, so J = [(p − c) × n, n]
     and δ solves the Gauss–Newton normal equations JᵀJ δ = −Jᵀ r.
     """
-    w = mask.to(moved.dtype)[..., None]
-    count = w.sum(-2).clamp_min(1.0)  # (B, 1)
-    centroid = (w * moved).sum(-2) / count  # (B, 3)
+    w = mask.to(moved.dtype)  # (B, N)
+    count = w.sum(-1, keepdim=True).clamp_min(1.0)  # (B, 1)
+    centroid = (w[:, None, :] @ moved).squeeze(-2) / count  # (B, 3)
     if weights is not None:
-        w = torch.where(mask, weights, torch.zeros_like(weights))[..., None]
+        w = torch.where(mask, weights, torch.zeros_like(weights))
     arm = moved - centroid[:, None]
-    residual = ((moved - matched) * normals).sum(-1, keepdim=True)
-    J = torch.cat((torch.linalg.cross(arm, normals), normals), dim=-1)  # (B, N, 6)
-    H = (J * w).transpose(-1, -2) @ J
-    g = (J * w).transpose(-1, -2) @ residual
+    offset = moved - matched
+    residual = (
+        offset[..., 0] * normals[..., 0]
+        + offset[..., 1] * normals[..., 1]
+        + offset[..., 2] * normals[..., 2]
+    )
+    # [J | r], (B, N, 7): one product gives both JᵀWJ and JᵀWr.
+    augmented = torch.cat((torch.linalg.cross(arm, normals), normals, residual[..., None]), -1)
+    products = (augmented * w[..., None]).transpose(-1, -2) @ augmented  # (B, 7, 7)
+    H, g = products[:, :6, :6], products[:, :6, 6:]
     # A tiny ridge keeps H invertible for degenerate overlaps (a plane leaves 3 directions
     # free; there g vanishes and they stay put). Rows without data get H = I, g = 0.
     eye = torch.eye(6, dtype=H.dtype, device=H.device)
@@ -468,13 +479,14 @@ def _icp_loop(
     config: ICPConfig,
     target_normals: Tensor | None,
 ) -> ICPResult:
-    """One pass per iteration: a KD-tree query (on :func:`query_workers` threads) for the
-    runs still going, their inlier statistics, the stop tests and the update. A run that
+    """One pass per iteration: nearest neighbours (KD-tree lookups on :func:`query_workers`
+    threads for the points not certain to keep theirs, :class:`_Matcher`) for the runs still
+    going, their inlier statistics, the stop tests and the update. A run that
     stops keeps the correspondences of its last pass (its final statistics need no extra
     query)."""
     batch = initial.shape[0]
     n = source.shape[0]
-    tree = _tree(fn, "target", target)
+    matcher = _Matcher(_tree(fn, "target", target), _host(fn, "target", target), batch, n)
     T = initial.clone()
     infinite = math.inf if config.max_distance is None else config.max_distance
     gate = source.new_full((batch,), infinite)
@@ -491,8 +503,7 @@ def _icp_loop(
         # Correspondences of the runs still going (rows), at their current transforms.
         T_rows, gate_rows = T[rows], gate[rows]
         moved = _move(T_rows, source)
-        bound = float(gate_rows.max()) if bool(torch.isfinite(gate_rows).all()) else None
-        distance, index = _query(tree, moved, bound, fn=fn, name="source")
+        distance, index = matcher(rows.numpy(), moved, gate_rows.cpu().numpy(), fn, "source")
         mask = _inlier_mask(distance, gate_rows, config.trim_fraction)
         count = mask.sum(-1)
         squared = torch.where(mask, distance, zero) ** 2
