@@ -11,6 +11,7 @@ from torchslam import HuberLoss, PointMapProblem, SolverConfig, solve_tensors
 from torchslam.data import make_scene
 from torchslam.initialization import initialize_scene
 from torchslam.solver.differentiable import ImplicitConfig, solve_differentiable
+from torchslam.solver.hessian import dense_hessian, exact_hessian
 
 # Solves run to round-off: Levenberg-Marquardt then stops at ‖∇F‖ ≈ 1e-10 (its cost-based
 # acceptance cannot verify smaller steps), so solutions repeat to ~1e-10 under perturbations of
@@ -261,8 +262,21 @@ def test_unrolled_forward_matches_the_solver():
         )
         assert result.status == reference.status
         assert torch.equal(result.iterations, reference.iterations)
-        assert torch.allclose(result.pose_tangent, reference.pose_tangent, rtol=0, atol=1e-12)
         assert torch.allclose(result.cost_history, reference.cost_history, rtol=1e-12, atol=0)
+        # The unrolled loop runs torch's products (autograd), the solver NumPy's: round-off
+        # apart. Stopped at the default tolerances the steps are still far above that noise,
+        # so the iterates agree to it. Run to convergence (CONVERGED) the last steps are the
+        # noise itself: both iterates lie where the cost is flat to its round-off, within
+        # √(ε·F/λ_min(H)) of the minimizer (H the exact Hessian there).
+        bound = torch.full_like(reference.final_cost, 1e-12)
+        if config is CONVERGED:
+            with torch.no_grad():
+                lin = exact_hessian(reference.pose_tangent, reference.points, problem.data)
+                lam_min = torch.linalg.eigvalsh(dense_hessian(lin, problem.data))[:, 0]
+            eps = torch.finfo(torch.float64).eps
+            bound = 4 * torch.sqrt(eps * reference.final_cost / lam_min)
+        difference = (result.pose_tangent - reference.pose_tangent).abs().flatten(1).amax(-1)
+        assert bool((difference <= bound).all())
 
 
 def test_information_matrices_implicit_equals_unrolled():
