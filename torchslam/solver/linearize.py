@@ -504,7 +504,9 @@ def instance_blocks(
     if weight is not None:
         Jt = weight[..., None, None] * Jt
     JtJ = matmul(Jt, J) if products else None
-    return cost, r, J, weight, JtJ, matmul(Jt, r[..., None])[..., 0]
+    # J̃ᵀr̃ as the row r̃ᵀJ̃ (no transposed copy of J̃).
+    Jtr = matmul(r[..., None, :], J)[..., 0, :]
+    return cost, r, J, weight, JtJ, Jtr if weight is None else weight[..., None] * Jtr
 
 
 def term_pair_keys(data: PointMapData) -> Tensor:
