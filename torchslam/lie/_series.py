@@ -56,18 +56,27 @@ def _horner(x: Tensor, coefficients: list[float]) -> Tensor:
 _TABLES: dict[tuple, Tensor] = {}
 
 
+def constant(key: object, values: object, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``torch.tensor(values, dtype, device)``, made once per (key, dtype, device): the
+    coefficient tables and index vectors of the Lie functions (small batches are bound by
+    the number of tensor operations, and making a tensor costs several)."""
+    full_key = (key, dtype, device)
+    table = _TABLES.get(full_key)
+    if table is None:
+        table = torch.tensor(values, dtype=dtype, device=device)
+        # Cache plain tensors only (a few tables × dtypes × devices): not an inference tensor
+        # (inference_mode) nor a fake one (FakeTensorMode), which later calls could not use.
+        if type(table) is torch.Tensor and not table.is_inference():
+            _TABLES[full_key] = table
+    return table
+
+
 def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:
     """:func:`_horner` of several series at the same x, in one pass over a (…, k) stack:
     the same operations per entry (bit for bit the same values), a third of the tensor
     operations for three series."""
-    key = (tuple(id(c) for c in series), x.dtype, x.device)
-    table = _TABLES.get(key)
-    if table is None:
-        table = torch.tensor(list(zip(*series, strict=True)), dtype=x.dtype, device=x.device)
-        # Cache plain tensors only (a few series × dtypes × devices): not an inference tensor
-        # (inference_mode) nor a fake one (FakeTensorMode), which later calls could not use.
-        if type(table) is torch.Tensor and not table.is_inference():
-            _TABLES[key] = table
+    key = tuple(id(c) for c in series)
+    table = constant(key, list(zip(*series, strict=True)), x.dtype, x.device)
     xs = x[..., None]
     result = table[-1].expand(*x.shape, len(series))
     for row in range(table.shape[0] - 2, -1, -1):

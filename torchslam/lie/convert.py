@@ -91,37 +91,44 @@ def _canonical(q: Tensor) -> Tensor:
     return torch.where(q[..., :1] < 0, -q, q)
 
 
+# Shepperd's candidates from the flattened R (row-major, m_rc at 3r + c): the diagonal
+# (m00, m11, m22), then m21, m02, m10 and m12, m20, m01 (the skew differences a, b, c are
+# the first minus the second), then m01, m02, m12 and m10, m20, m21 (the symmetric sums d,
+# e, f are the sum of the two); the 4 × 4 candidate matrix is symmetric in them (see below).
+_ENTRIES = (0, 4, 8, 7, 2, 3, 5, 6, 1, 1, 2, 5, 3, 6, 7)
+# 1 + s_k · (m00, m11, m22) for the candidates k = w, x, y, z.
+_DIAGONAL_SIGNS = ((1.0, 1.0, -1.0, -1.0), (1.0, -1.0, 1.0, -1.0), (1.0, -1.0, -1.0, 1.0))
+# Entry (k, c) of the candidate matrix in u = (r_w², r_x², r_y², r_z², skew (3), sym (3)).
+_CANDIDATES = (0, 4, 5, 6, 4, 1, 7, 8, 5, 7, 2, 9, 6, 8, 9, 3)
+
+
 def _matrix_to_quaternion(R: Tensor) -> Tensor:
     """Shepperd's method, (w, x, y, z), w ≥ 0; vmap-safe and gradient-safe.
 
     All four candidates are computed; the one built from the largest of
     (1 + tr, 1 + 2R00 − tr, …) is selected. That value is ≥ 1 for a rotation, so clamping
     the square root's argument at 0.25 changes only the discarded candidates (and keeps
-    their gradients finite).
+    their gradients finite). Candidate k is row k of the symmetric matrix
+
+        [[r_w², a, b, c], [a, r_x², d, e], [b, d, r_y², f], [c, e, f, r_z²]] / (2 r_k)
+
+    with (a, b, c) = (m21 − m12, m02 − m20, m10 − m01), (d, e, f) = (m01 + m10, m02 + m20,
+    m12 + m21) and r_k² the diagonal values: a few whole-tensor operations (small batches
+    are bound by their number).
     """
-    m00, m01, m02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    m10, m11, m12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    diag = torch.stack(
-        (
-            1.0 + m00 + m11 + m22,
-            1.0 + m00 - m11 - m22,
-            1.0 - m00 + m11 - m22,
-            1.0 - m00 - m11 + m22,
-        ),
-        dim=-1,
+    entries = R.reshape(*R.shape[:-2], 9).index_select(
+        -1, _series.constant("shepperd entries", _ENTRIES, torch.long, R.device)
     )
+    signs = _series.constant("shepperd signs", _DIAGONAL_SIGNS, R.dtype, R.device)
+    diag = 1.0 + entries[..., :3] @ signs
     root = torch.sqrt(diag.clamp_min(0.25))  # = 2·|component| for the selected candidate
-    r0, r1, r2, r3 = root.unbind(-1)
-    candidates = torch.stack(
-        (
-            torch.stack((r0 * r0, m21 - m12, m02 - m20, m10 - m01), dim=-1) / (2.0 * r0[..., None]),
-            torch.stack((m21 - m12, r1 * r1, m01 + m10, m02 + m20), dim=-1) / (2.0 * r1[..., None]),
-            torch.stack((m02 - m20, m01 + m10, r2 * r2, m12 + m21), dim=-1) / (2.0 * r2[..., None]),
-            torch.stack((m10 - m01, m02 + m20, m12 + m21, r3 * r3), dim=-1) / (2.0 * r3[..., None]),
-        ),
-        dim=-2,
+    skew = entries[..., 3:6] - entries[..., 6:9]
+    symmetric = entries[..., 9:12] + entries[..., 12:15]
+    u = torch.cat((root * root, skew, symmetric), dim=-1)
+    matrix = u.index_select(
+        -1, _series.constant("shepperd candidates", _CANDIDATES, torch.long, R.device)
     )
+    candidates = matrix.reshape(*u.shape[:-1], 4, 4) / (2.0 * root[..., :, None])
     best = diag.argmax(dim=-1)
     q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
     return _canonical(q)

@@ -191,7 +191,11 @@ def exp(xi: Tensor, *, form: Form = "robust") -> Tensor:
 
 def _log(T: Tensor) -> Tensor:
     omega = so3._log(T[..., :3, :3])
-    v = matmul(so3._jl_inv(omega), T[..., :3, 3:]).squeeze(-1)
+    t = T[..., :3, 3]
+    # v = J_l(ω)⁻¹ t = t − ½ ω × t + d ω × (ω × t), d the [ω]×² coefficient of J_l⁻¹.
+    d = _series.inverse_jacobian_coefficient_d((omega * omega).sum(-1))
+    wt = torch.linalg.cross(omega, t, dim=-1)
+    v = t - 0.5 * wt + d[..., None] * torch.linalg.cross(omega, wt, dim=-1)
     return torch.cat((omega, v), dim=-1)
 
 
