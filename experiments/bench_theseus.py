@@ -337,27 +337,13 @@ def torchslam_solution(case: str) -> dict:
     """Cost (and for TRAIN the observations' gradient, as training_step computes it) of
     torchslam's solution, untimed."""
     import torchslam as ts
-    from torchslam.benchmark import build, scene_tangent
+    from torchslam.benchmark import build, training_step
 
     scene, init, loss = build(case)
     row = {}
     for hessian in ("exact", "gauss_newton") if case == "TRAIN" else ():
         observations = scene.observations.clone().requires_grad_(True)
-        problem = ts.PointMapProblem(
-            init.poses,
-            init.points,
-            scene.pose_index,
-            scene.point_index,
-            observations,
-            valid=scene.valid,
-        )
-        result = ts.solve_differentiable(
-            problem.pose_tangent.detach(),
-            problem.points.detach(),
-            problem.data,
-            implicit=ts.ImplicitConfig(hessian=hessian),
-        )
-        (result.pose_tangent - scene_tangent(scene)).square().sum().backward()
+        result, _ = training_step(scene, init, hessian, observations)
         row[f"grad_{hessian}"] = observations.grad[scene.valid]
     if case != "TRAIN":
         problem = ts.PointMapProblem.from_scene(scene, init.poses, init.points, loss=loss)

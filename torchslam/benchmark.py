@@ -131,12 +131,16 @@ def run_case(case: str, repeats: int, rate: float, with_scipy: bool) -> dict:
     return row
 
 
-def training_step(scene, init, hessian: str = "exact") -> tuple[ts.SolveResult, float]:
+def training_step(
+    scene, init, hessian: str = "exact", observations: torch.Tensor | None = None
+) -> tuple[ts.SolveResult, float]:
     """One training step on a scene: the differentiable solve from ``init`` with the
     observations as the learned input, a loss on the solved poses, and its backward (the
     default implicit backward, ``ImplicitConfig(hessian=hessian)``). Returns the forward
-    result and the backward's seconds."""
-    observations = scene.observations.clone().requires_grad_(True)
+    result and the backward's seconds. ``observations``: the leaf to differentiate (a copy of
+    the scene's that requires grad, made here when None); its ``.grad`` holds the gradient."""
+    if observations is None:
+        observations = scene.observations.clone().requires_grad_(True)
     problem = ts.PointMapProblem(
         init.poses,
         init.points,
