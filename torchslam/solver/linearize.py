@@ -315,7 +315,8 @@ def linearize(
 
 
 def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured):
-    if data.pose_index.shape[1] == 0 and structured and data.information is None:
+    empty = data.pose_index.shape[1] == 0
+    if empty and structured and data.information is None and jacobian_mode == "analytic":
         return _no_observations(poses, points, data)
     r, T_e, X_e = _residuals(poses, points, data)
     free_pose = ~torch.gather(data.fixed_poses, 1, data.pose_index)
