@@ -78,9 +78,10 @@ def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:
     key = tuple(id(c) for c in series)
     table = constant(key, list(zip(*series, strict=True)), x.dtype, x.device)
     xs = x[..., None]
-    result = table[-1].expand(*x.shape, len(series))
-    for row in range(table.shape[0] - 2, -1, -1):
-        result = result * xs + table[row]
+    rows = table.unbind(0)
+    result = rows[-1].expand(*x.shape, len(series))
+    for row in reversed(rows[:-1]):
+        result = result * xs + row
     return result.unbind(-1)
 
 

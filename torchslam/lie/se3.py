@@ -59,9 +59,8 @@ _hat = so3._hat
 def _assemble(R: Tensor, t: Tensor) -> Tensor:
     """[[R, t], [0, 0, 0, 1]] from R (..., 3, 3) and t (..., 3)."""
     top = torch.cat((R, t[..., None]), dim=-1)
-    bottom = torch.zeros_like(top[..., :1, :])
-    bottom = torch.cat((bottom[..., :3], torch.ones_like(bottom[..., 3:])), dim=-1)
-    return torch.cat((top, bottom), dim=-2)
+    bottom = _series.constant("se3 bottom row", ((0.0, 0.0, 0.0, 1.0),), R.dtype, R.device)
+    return torch.cat((top, bottom.expand(*top.shape[:-2], 1, 4)), dim=-2)
 
 
 # Translations with an entry beyond the first bound are scaled by the second (an exact power of

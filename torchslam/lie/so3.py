@@ -61,14 +61,8 @@ def _check_form(fn: str, form: object) -> None:
 def _hat(omega: Tensor) -> Tensor:
     x, y, z = omega.unbind(-1)
     zero = torch.zeros_like(x)
-    return torch.stack(
-        (
-            torch.stack((zero, -z, y), dim=-1),
-            torch.stack((z, zero, -x), dim=-1),
-            torch.stack((-y, x, zero), dim=-1),
-        ),
-        dim=-2,
-    )
+    rows = torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), dim=-1)
+    return rows.reshape(*omega.shape[:-1], 3, 3)
 
 
 def hat(omega: Tensor) -> Tensor:
