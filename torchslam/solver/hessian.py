@@ -53,7 +53,7 @@ from torchslam.objective.terms import (
     term_points,
     term_poses,
 )
-from torchslam.solver.linearize import BlockLinearization, TermLinearization
+from torchslam.solver.linearize import BlockLinearization, TermAccumulator, TermLinearization
 
 __all__ = ["dense_hessian", "exact_hessian"]
 
@@ -226,49 +226,18 @@ def _term_blocks(term: Term, poses: Tensor, points: Tensor, data: PointMapData, 
 
 def _terms(poses: Tensor, points: Tensor, data: PointMapData, mode: str) -> TermLinearization:
     """The terms' exact blocks in the layout of :func:`~.linearize.linearize_terms`."""
-    B, m = poses.shape[:2]
-    n = points.shape[1]
-    cost = poses.new_zeros(B)
-    gradient = poses.new_zeros(B * m, 6)
-    diagonal = poses.new_zeros(B * m, 6, 6)
-    point_gradient = poses.new_zeros(B * n, 3)
-    point_diagonal = poses.new_zeros(B * n, 3, 3)
-    pairs, couplings = [], []
-    batch = torch.arange(B, device=poses.device)[:, None]
+    B, n = poses.shape[0], points.shape[1]
+    total = TermAccumulator(poses, points)
     for term in data.terms:
         if term.has_point and n == 0:
             continue  # no points: every instance of the term is padding
         term_cost, g, H = _term_blocks(term, poses, points, data, mode)
-        cost = cost + term_cost
         K, a = term.pose_index.shape[1:]
         P = 6 * a
-        slots = batch[..., None] * m + term.pose_index  # (B, K, a)
-        Hp = H[..., :P, :P].reshape(B, K, a, 6, a, 6)
-        idx = torch.arange(a, device=poses.device)
-        diagonal.index_add_(
-            0, slots.permute(2, 0, 1).reshape(-1), Hp[:, :, idx, :, idx].reshape(-1, 6, 6)
-        )
-        gradient.index_add_(0, slots.reshape(-1), g[..., :P].reshape(-1, 6))
-        for i in range(a):
-            for j in range(a):
-                if i != j:
-                    pairs.append(Hp[:, :, i, :, j])
-        if term.has_point:
-            point_slots = (batch * n + term.point_index).reshape(-1)
-            point_gradient.index_add_(0, point_slots, g[..., P:].reshape(-1, 3))
-            point_diagonal.index_add_(0, point_slots, H[..., P:, P:].reshape(-1, 3, 3))
-            couplings.append(H[..., :P, P:].reshape(B, K * a, 6, 3))
-    return TermLinearization(
-        cost=cost,
-        gradient=gradient.reshape(B, m, 6),
-        diagonal=diagonal.reshape(B, m, 6, 6),
-        pair_blocks=torch.cat(pairs, dim=1) if pairs else poses.new_zeros(B, 0, 6, 6),
-        jacobians=(),
-        scales=(),
-        point_gradient=point_gradient.reshape(B, n, 3),
-        point_diagonal=point_diagonal.reshape(B, n, 3, 3),
-        coupling=torch.cat(couplings, dim=1) if couplings else poses.new_zeros(B, 0, 6, 3),
-    )
+        # (a, a, B, K, 6, 6) views of the pose blocks of the instances' full (c × c) H.
+        pose_blocks = H[..., :P, :P].reshape(B, K, a, 6, a, 6).permute(2, 4, 0, 1, 3, 5)
+        total.add(term, term_cost, g, pose_blocks, H[..., P:, P:], H[..., :P, P:])
+    return total.result()
 
 
 def exact_hessian(

@@ -526,21 +526,82 @@ def term_pair_keys(data: PointMapData) -> Tensor:
     return torch.cat(keys, dim=1)
 
 
+class TermAccumulator:
+    """Sums the terms' per-instance blocks into the layout of :class:`TermLinearization`: the
+    one scatter of :func:`linearize_terms` and of the exact Hessian (:mod:`.hessian`)."""
+
+    def __init__(self, poses: Tensor, points: Tensor) -> None:
+        self.B, self.m = poses.shape[:2]
+        self.n = points.shape[1]
+        B, m, n = self.B, self.m, self.n
+        self.cost = poses.new_zeros(B)
+        self.gradient = poses.new_zeros(B * m, 6)
+        self.diagonal = poses.new_zeros(B * m, 6, 6)
+        self.point_gradient = poses.new_zeros(B * n, 3)
+        self.point_diagonal = poses.new_zeros(B * n, 3, 3)
+        self.pairs: list[Tensor] = []
+        self.couplings: list[Tensor] = []
+        self.jacobians: list[Tensor] = []
+        self.scales: list[Tensor] = []
+        self.batch = torch.arange(B, device=poses.device)[:, None]
+
+    def add(
+        self,
+        term: Term,
+        cost: Tensor,
+        gradient: Tensor,
+        pose_blocks: Tensor,
+        point_block: Tensor | None = None,
+        coupling: Tensor | None = None,
+    ) -> None:
+        """One term's share: cost (B,), gradient (B, K, 6a [+ 3]), pose_blocks[i][j] the
+        blocks of poses i and j of every instance, (B, K, 6, 6) each (indexable as an
+        (a, a, B, K, 6, 6) tensor), and for a term with a point its block (B, K, 3, 3) and its
+        couplings (B, K, 6a, 3)."""
+        B, m, n = self.B, self.m, self.n
+        K, a = term.pose_index.shape[1:]
+        P = 6 * a
+        slots = self.batch[..., None] * m + term.pose_index  # (B, K, a)
+        self.cost = self.cost + cost
+        for i in range(a):
+            self.diagonal.index_add_(
+                0, slots[..., i].reshape(-1), pose_blocks[i][i].reshape(-1, 6, 6)
+            )
+        self.gradient.index_add_(0, slots.reshape(-1), gradient[..., :P].reshape(-1, 6))
+        self.pairs.extend(pose_blocks[i][j] for i in range(a) for j in range(a) if i != j)
+        if term.has_point:
+            point_slots = (self.batch * n + term.point_index).reshape(-1)
+            self.point_gradient.index_add_(0, point_slots, gradient[..., P:].reshape(-1, 3))
+            self.point_diagonal.index_add_(0, point_slots, point_block.reshape(-1, 3, 3))
+            self.couplings.append(coupling.reshape(B, K * a, 6, 3))
+
+    def result(self) -> TermLinearization:
+        B, m, n = self.B, self.m, self.n
+        like = self.gradient
+        return TermLinearization(
+            cost=self.cost,
+            gradient=self.gradient.reshape(B, m, 6),
+            diagonal=self.diagonal.reshape(B, m, 6, 6),
+            pair_blocks=torch.cat(self.pairs, dim=1) if self.pairs else like.new_zeros(B, 0, 6, 6),
+            jacobians=tuple(self.jacobians),
+            scales=tuple(self.scales),
+            point_gradient=self.point_gradient.reshape(B, n, 3),
+            point_diagonal=self.point_diagonal.reshape(B, n, 3, 3),
+            coupling=(
+                torch.cat(self.couplings, dim=1) if self.couplings else like.new_zeros(B, 0, 6, 3)
+            ),
+        )
+
+
 def linearize_terms(
     poses: Tensor, points: Tensor, data: PointMapData, jacobian_mode: str
 ) -> TermLinearization:
     """The terms' normal-equation blocks at poses T (B, m, 4, 4) and points (B, n, 3)
-    (module doc): :func:`instance_blocks` per term, scattered into the pose and point blocks,
-    the pose pairs and the coupling edges."""
-    B, m = poses.shape[:2]
+    (module doc): :func:`instance_blocks` per term, summed by :class:`TermAccumulator` into
+    the pose and point blocks, the pose pairs and the coupling edges."""
+    B = poses.shape[0]
     n = points.shape[1]
-    cost = poses.new_zeros(B)
-    gradient = poses.new_zeros(B * m, 6)
-    diagonal = poses.new_zeros(B * m, 6, 6)
-    point_gradient = poses.new_zeros(B * n, 3)
-    point_diagonal = poses.new_zeros(B * n, 3, 3)
-    pairs, couplings, jacobians, scales = [], [], [], []
-    batch = torch.arange(B, device=poses.device)[:, None]
+    total = TermAccumulator(poses, points)
     for term in data.terms:
         has_point = term.has_point
         if has_point and n == 0:
@@ -548,7 +609,6 @@ def linearize_terms(
         X = term_points(term, points) if has_point else None
         r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode)
         K, a = term.pose_index.shape[1:]
-        slots = batch[..., None] * m + term.pose_index  # (B, K, a)
         fixed = term_fixed_rows(term, data.fixed_poses)
         if fixed is not None:  # the columns of fixed poses are zero (on those rows only)
             rows, free = fixed
@@ -556,7 +616,7 @@ def linearize_terms(
             J = flat.index_copy(0, rows, flat[rows] * free[:, None, :, None]).reshape(J.shape)
         J = J.flatten(-2)  # (B, K, d, 6a)
         if has_point:
-            point_slots = batch * n + term.point_index  # (B, K)
+            point_slots = total.batch * n + term.point_index  # (B, K)
             free_point = ~data.fixed_points.reshape(-1)[point_slots]
             J = torch.cat((J, J_point * free_point[..., None, None]), -1)
         all_valid = term_all_valid(term)
@@ -567,9 +627,8 @@ def linearize_terms(
         term_cost, _, Jw, scale, _, Jtr = instance_blocks(
             r, J, term.valid, whitening, weight, term.loss, all_valid=all_valid, products=False
         )
-        cost = cost + term_cost
-        jacobians.append(Jw)
-        scales.append(term.valid.to(r.dtype) if scale is None else scale)
+        total.jacobians.append(Jw)
+        total.scales.append(term.valid.to(r.dtype) if scale is None else scale)
         P, d = 6 * a, Jw.shape[-2]
         Jt = Jw.transpose(-1, -2)
         if scale is not None:  # w on one side only (the products are symmetric to round-off)
@@ -579,29 +638,12 @@ def linearize_terms(
             Jt[..., :P, :].reshape(B, K, a, 6, d).permute(2, 0, 1, 3, 4)[:, None],
             Jw[..., :P].reshape(B, K, d, a, 6).permute(3, 0, 1, 2, 4)[None],
         )
-        for i in range(a):
-            diagonal.index_add_(0, slots[..., i].reshape(-1), H[i, i].reshape(-1, 6, 6))
-        gradient.index_add_(0, slots.reshape(-1), Jtr[..., :P].reshape(-1, 6))
-        pairs.extend(H[i, j] for i in range(a) for j in range(a) if i != j)
+        point_block = coupling = None
         if has_point:
-            point_gradient.index_add_(0, point_slots.reshape(-1), Jtr[..., P:].reshape(-1, 3))
-            point_diagonal.index_add_(
-                0, point_slots.reshape(-1), matmul(Jt[..., P:, :], Jw[..., P:]).reshape(-1, 3, 3)
-            )
-            couplings.append(matmul(Jt[..., :P, :], Jw[..., P:]).reshape(B, K * a, 6, 3))
-    pair_blocks = torch.cat(pairs, dim=1) if pairs else poses.new_zeros(B, 0, 6, 6)
-    coupling = torch.cat(couplings, dim=1) if couplings else poses.new_zeros(B, 0, 6, 3)
-    return TermLinearization(
-        cost=cost,
-        gradient=gradient.reshape(B, m, 6),
-        diagonal=diagonal.reshape(B, m, 6, 6),
-        pair_blocks=pair_blocks,
-        jacobians=tuple(jacobians),
-        scales=tuple(scales),
-        point_gradient=point_gradient.reshape(B, n, 3),
-        point_diagonal=point_diagonal.reshape(B, n, 3, 3),
-        coupling=coupling,
-    )
+            point_block = matmul(Jt[..., P:, :], Jw[..., P:])
+            coupling = matmul(Jt[..., :P, :], Jw[..., P:])
+        total.add(term, term_cost, Jtr, H, point_block, coupling)
+    return total.result()
 
 
 def cost_at(
