@@ -300,26 +300,28 @@ def dense_hessian(lin: BlockLinearization, data: PointMapData) -> Tensor:
     n = lin.point_blocks.shape[1]
     N = 6 * m + 3 * n
     H = lin.pose_blocks.new_zeros(B, N, N)
-    for i in range(m):
-        H[:, 6 * i : 6 * i + 6, 6 * i : 6 * i + 6] += lin.pose_blocks[:, i]
-    for j in range(n):
-        o = 6 * m + 3 * j
-        H[:, o : o + 3, o : o + 3] += lin.point_blocks[:, j]
+    device = H.device
+
+    def add(batch: Tensor, row: Tensor, col: Tensor, blocks: Tensor) -> None:
+        """H[b, row + r, col + c] += blocks[…, r, c] for blocks (…, p, q) at offsets (…)."""
+        p, q = blocks.shape[-2:]
+        r = row[..., None, None] + torch.arange(p, device=device)[:, None]
+        c = col[..., None, None] + torch.arange(q, device=device)
+        b = batch[..., None, None].expand(*r.shape[:-2], p, q)
+        H.index_put_((b, r.expand(b.shape), c.expand(b.shape)), blocks, accumulate=True)
+
+    batch = torch.arange(B, device=device)[:, None]
+    poses = 6 * torch.arange(m, device=device).expand(B, m)
+    points = 6 * m + 3 * torch.arange(n, device=device).expand(B, n)
+    add(batch.expand(B, m), poses, poses, lin.pose_blocks)
+    add(batch.expand(B, n), points, points, lin.point_blocks)
     edges = coupling_edges(data)
-    for b in range(B):
-        for e in range(edges.pose_index.shape[1]):
-            i, j = int(edges.pose_index[b, e]), int(edges.point_index[b, e])
-            block = lin.coupling[b, e]
-            if not bool(edges.active[b, e]):
-                continue
-            o = 6 * m + 3 * j
-            H[b, 6 * i : 6 * i + 6, o : o + 3] += block
-            H[b, o : o + 3, 6 * i : 6 * i + 6] += block.T
+    coupling = torch.where(edges.active[..., None, None], lin.coupling, 0.0)
+    row, col = 6 * edges.pose_index, 6 * m + 3 * edges.point_index
+    edge_batch = batch.expand_as(row)
+    add(edge_batch, row, col, coupling)
+    add(edge_batch, col, row, coupling.transpose(-1, -2))
     if lin.terms is not None and lin.terms.pair_blocks.shape[1] > 0:
-        keys = term_pair_keys(data)
-        for b in range(B):
-            for p in range(keys.shape[1]):
-                key = int(keys[b, p]) % (m * m)
-                i, k = key // m, key % m
-                H[b, 6 * i : 6 * i + 6, 6 * k : 6 * k + 6] += lin.terms.pair_blocks[b, p]
+        keys = term_pair_keys(data) % (m * m)
+        add(batch.expand_as(keys), 6 * (keys // m), 6 * (keys % m), lin.terms.pair_blocks)
     return H
