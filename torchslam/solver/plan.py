@@ -199,17 +199,22 @@ class DenseReduced:
 
     def matrix(self, upper: Tensor, dense: Tensor | None = None, mirror: bool = True) -> Tensor:
         """The symmetric (B, 6m, 6m) matrix of the upper blocks (num_slots, 6, 6) plus
-        ``dense``, an optional symmetric part given as all its blocks (B, m, m, 6, 6).
-        ``mirror=False``: the caller knows ``upper`` holds only diagonal blocks (no strictly
-        upper block to mirror), which saves two passes over the matrix."""
+        ``dense``, an optional symmetric (B, 6m, 6m) part that this call may overwrite (the
+        caller's temporary). ``mirror=False``: the caller knows ``upper`` holds only diagonal
+        blocks (no strictly upper block to mirror); they are then added to ``dense`` in place
+        of a pass over the whole matrix."""
         B, m = self.batch_size, self.num_poses
         A = upper.reshape(B, m, m, 6, 6)
-        full = A if dense is None else A + dense
         if mirror:
             strict = ~torch.eye(m, dtype=torch.bool, device=A.device)[None, :, :, None, None]
             lower = torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
-            full = full + lower
-        return full.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+            full = (A + lower).transpose(2, 3).reshape(B, 6 * m, 6 * m)
+            return full if dense is None else full + dense
+        if dense is None:
+            return A.transpose(2, 3).reshape(B, 6 * m, 6 * m)
+        # dense's diagonal blocks (B, 6, 6, m) += A's (B, 6, 6, m)
+        dense.view(B, m, 6, m, 6).diagonal(0, 1, 3).add_(A.diagonal(0, 1, 2))
+        return dense
 
     def factor(
         self,
@@ -218,7 +223,7 @@ class DenseReduced:
         definite: bool = False,
         mirror: bool = True,
     ) -> _DenseCholesky:
-        """Factor S = :meth:`matrix` (``upper``, ``dense`` (B, m, m, 6, 6) blocks, ``mirror``);
+        """Factor S = :meth:`matrix` (``upper``, ``dense`` (B, 6m, 6m), ``mirror``);
         Cholesky reports a failure at no extra cost, so ``definite`` is not needed."""
         return _DenseCholesky.of(self.matrix(upper, dense, mirror))
 
@@ -551,8 +556,7 @@ class LinearPlan:
                 D = blocks.new_zeros(B * m * c, 6, 3).index_add_(0, slots, values)
                 dense.append(D.reshape(B, m, c, 6, 3).transpose(2, 3).reshape(B, 6 * m, 3 * c))
             C = C.baddbmm(dense[1], dense[0].transpose(1, 2), alpha=-1.0)
-        dense = C.reshape(B, m, 6, m, 6).transpose(2, 3)
-        factor = self.reduced.factor(upper, dense, False, mirror=has_pairs)
+        factor = self.reduced.factor(upper, C, False, mirror=has_pairs)
         return Factorization(factor, elim, point_ok, self.shape)
 
     def _pose_side(self, lin: BlockLinearization | StructuredLinearization, lam: Tensor) -> Tensor:
@@ -591,38 +595,49 @@ class LinearPlan:
         return self.pairs
 
     def _monomial_products(self, lin: StructuredLinearization, v_d: Tensor) -> Tensor:
-        """−Σ_j (a_ij a_kj / v_j) G_jᵀ G_j (the points' part of S) as all its blocks
-        (B, m, m, 6, 6), a_ij the coupling weight of point j in frame i (0 if none): each of
-        the 10 monomial coefficients of
-        G_jᵀ G_j (.linearize) is one product A·diag(f/v)·Aᵀ, all by one batched GEMM of
-        (m × c) by (c × 10m) per chunk of c points (20·m²·n flops, no per-pair products),
-        with c chosen so that the (B, 10·m, c) buffer stays within STRUCTURED_CHUNK_ENTRIES.
+        """−Σ_j (a_ij a_kj / v_j) G_jᵀ G_j, the points' part of S, as the (B, 6m, 6m) matrix,
+        a_ij the coupling weight of point j in frame i (0 if none).
+
+        The 6×6 block of G_jᵀ G_j is linear in the 10 monomials q_ab = s_a s_b of
+        s = (1, x, y, z) (.linearize.blocks_from_monomials), so the 10 matrices
+        Σ_j a_ij a_kj q_ab(X_j) / v_j are products P_a P_bᵀ of the four (m × n) matrices
+        P_a = A·diag(s_a / √v): one batched GEMM per a of P_a by P_{a..3} (20·m²·n flops,
+        no per-pair products; the (B, 4, m, c) operand is a third of a monomial-scaled one),
+        chunked over c points within STRUCTURED_CHUNK_ENTRIES. One small product with the
+        constant ±1 selection (36 × 10, exact: each entry is a signed sum of at most three
+        monomial sums) gives the 36 entries of every block, and one copy lays them out as
+        the matrix.
         """
         B, m, n = self.shape
         pose_index, point_index = self.edges.pose_index, self.edges.point_index
         batch = torch.arange(B, device=v_d.device)[:, None]
-        # (B, 10, n), contiguous so that the broadcast product below comes out contiguous;
-        # negated here (exactly: rounding is symmetric) so that no pass negates the result.
-        F = (monomials(lin.points) / -v_d[..., None]).transpose(1, 2).contiguous()
-        chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 10 * m)))
-        C = v_d.new_zeros(B, 10 * m, m)
+        # (B, 4, n) contiguous, so that P below comes out contiguous (B, 4, m, c)
+        scale = v_d.rsqrt()[..., None]
+        s = torch.cat((scale, lin.points * scale), -1).transpose(1, 2).contiguous()
+        chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 4 * m)))
         weight = lin.coupling_weight
+        parts: list[Tensor] = []
         for start in range(0, n, chunk):
             c = min(chunk, n - start)
             if c == n:
-                inside, local = torch.ones_like(self.edges.active), point_index
+                values, local = weight, point_index
             else:
                 inside = (point_index >= start) & (point_index < start + c)
+                values = torch.where(inside, weight, torch.zeros_like(weight))
                 local = (point_index - start).clamp(0, c - 1)
             A = v_d.new_zeros(B * m * c).index_add_(
-                0,
-                ((batch * m + pose_index) * c + local).reshape(-1),
-                torch.where(inside, weight, torch.zeros_like(weight)).reshape(-1),
+                0, ((batch * m + pose_index) * c + local).reshape(-1), values.reshape(-1)
             )
-            A = A.reshape(B, m, c)
-            AF = (A[:, None] * F[:, :, None, start : start + c]).reshape(B, 10 * m, c)
-            C = C.baddbmm(AF, A.transpose(1, 2)) if c != n else torch.bmm(AF, A.transpose(1, 2))
-        return blocks_from_monomials(C.reshape(B, 10, m, m).permute(0, 2, 3, 1))
+            P = A.reshape(B, 1, m, c) * s[:, :, None, start : start + c]
+            for a in range(4):  # the rows (b ≥ a, a) of C: P_{a..3} P_aᵀ
+                product = P[:, a:].reshape(B, (4 - a) * m, c)
+                if start == 0:
+                    parts.append(torch.bmm(product, P[:, a].transpose(1, 2)))
+                else:
+                    parts[a] = parts[a].baddbmm(product, P[:, a].transpose(1, 2))
+        C = torch.cat(parts, 1)  # (B, 10 m, m): the 10 symmetric (m × m) sums
+        blocks = _monomial_selection(C.dtype, C.device) @ C.reshape(B, 10, m * m)
+        return blocks.reshape(B, 6, 6, m, m).permute(0, 3, 1, 4, 2).reshape(B, 6 * m, 6 * m)
 
     def _factorize_full(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
         """The full (6m + 3n)² system — small problems and cross-checks only. Assembled by
@@ -659,6 +674,37 @@ class LinearPlan:
             pairs = pairs.reshape(B, m, m, 6, 6).transpose(2, 3).reshape(B, 6 * m, 6 * m)
             H = H + torch.nn.functional.pad(pairs, (0, 3 * n, 0, 3 * n))
         return Factorization(_DenseCholesky.of(H), None, None, self.shape)
+
+
+_SELECTION: dict[tuple[torch.dtype, torch.device], Tensor] = {}
+
+
+def _monomial_selection(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The (36, 10) matrix of 0 and ±1 taking the monomial sums c of
+    :meth:`LinearPlan._monomial_products` (order 1, x, y, z, xx, xy, xz, yy, yz, zz) to the
+    36 entries (r, s) of the block −Σ c G_jᵀ G_j (:func:`.linearize.blocks_from_monomials`
+    negated): top-left c_rs − δ_rs (c_xx + c_yy + c_zz), top-right −[(c_x, c_y, c_z)]×,
+    bottom-left its transpose, bottom-right −c_1 I. Cached per dtype and device."""
+    key = (dtype, device)
+    if key not in _SELECTION:
+        one, x, y, z, xx, xy, xz, yy, yz, zz = range(10)
+        M = torch.zeros(6, 6, 10, dtype=torch.float64)
+        second = ((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))
+        for r in range(3):
+            for c in range(3):
+                M[r, c, second[r][c]] += 1.0
+                if r == c:
+                    M[r, c, [xx, yy, zz]] -= 1.0
+        # top-right −[c]× with c = (c_x, c_y, c_z); bottom-left its transpose
+        cross = {(0, 1): (z, 1.0), (0, 2): (y, -1.0), (1, 0): (z, -1.0), (1, 2): (x, 1.0)}
+        cross |= {(2, 0): (y, 1.0), (2, 1): (x, -1.0)}
+        for (r, c), (q, sign) in cross.items():
+            M[r, 3 + c, q] = sign
+            M[3 + c, r, q] = sign
+        for r in range(3):
+            M[3 + r, 3 + r, one] = -1.0
+        _SELECTION[key] = M.reshape(36, 10).to(dtype=dtype, device=device)
+    return _SELECTION[key]
 
 
 def choose_reduced_solver(
