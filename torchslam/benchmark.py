@@ -47,7 +47,7 @@ def build(case: str):
 
 
 def matmul_rate() -> float:
-    """Measured float64 GEMM rate (FLOP/s) on 1000 × 1000 matrices, 2 threads."""
+    """Measured float64 GEMM rate (FLOP/s) on 1000 × 1000 matrices, torch's current threads."""
     a = torch.randn(1000, 1000, dtype=torch.float64)
     a @ a
     times = []
@@ -78,57 +78,88 @@ def schur_flops(B: int, m: int, n: int, E: int) -> dict[str, float]:
 
 def run_case(case: str, repeats: int, rate: float, with_scipy: bool) -> dict:
     """One case: the whole solve (problem construction included), median over ``repeats``
-    after a warm-up run. Case TRAIN is a training step on the BATCH problems
-    (:func:`training_step`): the forward solve plus the implicit backward to the
-    observations."""
+    after a warm-up run, on torch's current thread count. Case TRAIN is a training step on
+    the BATCH problems (:func:`training_step`): the forward solve plus the implicit backward
+    to the observations."""
+    threads = torch.get_num_threads()
+    return run_case_threads(case, repeats, {threads: rate}, with_scipy)[0]
+
+
+def run_case_threads(
+    case: str, repeats: int, rates: dict[int, float], with_scipy: bool
+) -> list[dict]:
+    """:func:`run_case` on several torch thread counts (the keys of ``rates``, each with its
+    measured matmul rate for the FLOP ratio), interleaved: every repeat runs the case once
+    under each count in turn, so that the machine's drift hits all counts alike. One row per
+    count, in the order of ``rates``; each also holds ``threads`` and ``paired_ratio``, the
+    median over repeats of its time divided by the first count's time in the same repeat.
+    scipy (thread-count independent here: it runs NumPy, not torch) runs once per case."""
     scene, init, loss = build(case)
     B, m, n = scene.batch_size, scene.num_poses, scene.num_points
     E = int(scene.valid.sum())
-    times, result, backward = [], None, []
-    for _ in range(repeats + 1):  # first run warms up
-        t = time.perf_counter()
-        if case == "TRAIN":
-            result, backward_s = training_step(scene, init)
-            backward.append(backward_s)
-        else:
-            problem = ts.PointMapProblem.from_scene(scene, init.poses, init.points, loss=loss)
-            result = ts.solve(problem)
-        times.append(time.perf_counter() - t)
-    times = times[1:]
-    median = statistics.median(times)
+    counts = list(rates)
+    times: dict[int, list[float]] = {t: [] for t in counts}
+    backward: dict[int, list[float]] = {t: [] for t in counts}
+    result = None
+    previous = torch.get_num_threads()
+    try:
+        for _ in range(repeats + 1):  # the first round warms up
+            for threads in counts:
+                torch.set_num_threads(threads)
+                t = time.perf_counter()
+                if case == "TRAIN":
+                    result, backward_s = training_step(scene, init)
+                    backward[threads].append(backward_s)
+                else:
+                    problem = ts.PointMapProblem.from_scene(
+                        scene, init.poses, init.points, loss=loss
+                    )
+                    result = ts.solve(problem)
+                times[threads].append(time.perf_counter() - t)
+    finally:
+        torch.set_num_threads(previous)
     iterations = int(result.iterations.max())
     errors = ts.metrics.evaluate(result.poses, scene.poses_gt)
     errors0 = ts.metrics.evaluate(init.poses, scene.poses_gt)
     flops = schur_flops(B, m, n, E)
     total = sum(v for k, v in flops.items() if k != "sparse_minimum")
-    per_iteration = median / max(iterations, 1)
-    row = {
-        "case": case,
-        "B": B,
-        "m": m,
-        "n": n,
-        "observations": E,
-        "median_s": median,
-        "min_s": min(times),
-        "iterations": iterations,
-        "per_iteration_s": per_iteration,
-        "final_cost": float(result.final_cost.detach().sum()),
-        "status": sorted({s.name for s in result.status}),
-        "initial_rotation_error_deg": errors0.mean_rotation_error_deg,
-        "rotation_error_deg": errors.mean_rotation_error_deg,
-        "max_rotation_error_deg": errors.max_rotation_error_deg,
-        "ate": errors.mean_ate,
-        "flops_per_iteration": total,
-        "flop_time_s": total / rate,
-        "flop_ratio": per_iteration / (total / rate),
-        "sparse_minimum_flops": flops["sparse_minimum"],
-    }
-    if case == "TRAIN":
-        row["backward_s"] = statistics.median(backward[1:])
-    if with_scipy and case not in ("O", "TRAIN"):
-        row.update(run_scipy(scene, init))
-        row["speedup_vs_scipy"] = row["scipy_s"] / median
-    return row
+    scipy_row = run_scipy(scene, init) if with_scipy and case not in ("O", "TRAIN") else {}
+    first = times[counts[0]][1:]
+    rows = []
+    for threads in counts:
+        measured = times[threads][1:]
+        median = statistics.median(measured)
+        per_iteration = median / max(iterations, 1)
+        row = {
+            "case": case,
+            "threads": threads,
+            "B": B,
+            "m": m,
+            "n": n,
+            "observations": E,
+            "median_s": median,
+            "min_s": min(measured),
+            "paired_ratio": statistics.median(a / b for a, b in zip(measured, first, strict=True)),
+            "iterations": iterations,
+            "per_iteration_s": per_iteration,
+            "final_cost": float(result.final_cost.detach().sum()),
+            "status": sorted({s.name for s in result.status}),
+            "initial_rotation_error_deg": errors0.mean_rotation_error_deg,
+            "rotation_error_deg": errors.mean_rotation_error_deg,
+            "max_rotation_error_deg": errors.max_rotation_error_deg,
+            "ate": errors.mean_ate,
+            "flops_per_iteration": total,
+            "flop_time_s": total / rates[threads],
+            "flop_ratio": per_iteration / (total / rates[threads]),
+            "sparse_minimum_flops": flops["sparse_minimum"],
+        }
+        if case == "TRAIN":
+            row["backward_s"] = statistics.median(backward[threads][1:])
+        if scipy_row:
+            row.update(scipy_row)
+            row["speedup_vs_scipy"] = row["scipy_s"] / median
+        rows.append(row)
+    return rows
 
 
 def training_step(

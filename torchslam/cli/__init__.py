@@ -23,8 +23,10 @@ Threads (one policy for every subcommand): ``--threads N`` sets torch's intra-op
 the run (and the worker threads of SciPy's KD-tree queries in ``register``), default
 :data:`DEFAULT_THREADS` = 1. The per-observation and per-edge tensors of these solves are small,
 and on a CPU shared with other work a second OpenMP thread waits for a busy core (measured 5–7×
-slower); only large dense systems (the L case of ``bench``) gain from more. The previous thread
-count is restored when the command returns.
+slower); only large dense systems (the L case of ``bench``) gain from more. Inside the library a
+solve whose tensors all stay below torch's parallel grain size runs on one thread whatever the
+setting (:mod:`torchslam._threads`), so more threads never slow a small solve down. The
+previous thread count is restored when the command returns.
 
 Figures need matplotlib (``pip install 'torchslam[plot]'``). Without it, the figures that a
 command writes by default (``demo``, ``bench``, ``register``) are skipped with one

@@ -102,6 +102,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks, losses
+from torchslam._threads import threads_for
 from torchslam.lie import se3
 from torchslam.manifold import SE3Matrix
 from torchslam.objective.data import PointMapData, cost, cost_from_poses
@@ -433,6 +434,11 @@ class _ImplicitSolution(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_xi, grad_X):
+        with threads_for(ctx.spec.data.data):  # small problems on one thread (._threads)
+            return _ImplicitSolution._backward(ctx, grad_xi, grad_X)
+
+    @staticmethod
+    def _backward(ctx, grad_xi, grad_X):
         # The engine runs a backward in grad mode exactly when it records a graph of the
         # gradient (create_graph=True). That graph would have to differentiate the solution
         # map twice (third derivatives of the cost); rather than return a gradient that

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from torchslam import manifold
+from torchslam._threads import threads_for
 from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import linearize, model_decrease, whitening_factors
@@ -346,7 +347,13 @@ def run(
 
     ``on_step`` sees the state after every iteration (and the initial one when
     ``report_initial``); ``plan`` defaults to :meth:`LinearPlan.build`. Returns the final
-    state and the histories."""
+    state and the histories. Small problems run on one intra-op thread
+    (:mod:`torchslam._threads`)."""
+    with threads_for(data):
+        return _run(pose_tangent, points, data, config, on_step, report_initial, plan)
+
+
+def _run(pose_tangent, points, data, config, on_step, report_initial, plan):
     factor = whitening_factors(data)
     state = initial_state(pose_tangent, points, data, factor, config)
     history = Histories([state.cost.detach().clone()], [state.lam.clone()], [])
