@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam.lie import _series
 from torchslam.lie.so3 import hat
 from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
@@ -71,7 +72,7 @@ __all__ = [
 def damp(blocks: Tensor, lam: Tensor, damping: str) -> Tensor:
     """Add λD to square diagonal blocks (B, k, d, d); D = diag(block) clamped (Marquardt,
     as Ceres: [1e-6, 1e32]) or I (Levenberg). ``lam`` has shape (B,)."""
-    eye = torch.eye(blocks.shape[-1], dtype=blocks.dtype, device=blocks.device)
+    eye = _series.eye(blocks.shape[-1], blocks.dtype, blocks.device)
     if damping == "levenberg":
         D = eye
     else:
@@ -391,6 +392,8 @@ class LinearPlan:
     diagonal_slots: Tensor | None = None
     # Keys of all the terms' pose-pair blocks, flat (B·P,) (the full system adds them all).
     term_keys: Tensor | None = None
+    # Index tensors made on first use and kept for the solve (_edge_slots, ...).
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @staticmethod
     def build(data: PointMapData, config: SolverConfig) -> LinearPlan:
@@ -567,20 +570,25 @@ class LinearPlan:
         return upper
 
     def _edge_slots(self) -> tuple[Tensor, Tensor]:
-        """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',)."""
-        B, m, n = self.shape
-        batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
-        return (
-            (batch * m + self.edges.pose_index).reshape(-1),
-            (batch * n + self.edges.point_index).reshape(-1),
-        )
+        """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',);
+        made once per plan."""
+        slots = self._cache.get("edges")
+        if slots is None:
+            B, m, n = self.shape
+            batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
+            slots = (
+                (batch * m + self.edges.pose_index).reshape(-1),
+                (batch * n + self.edges.point_index).reshape(-1),
+            )
+            self._cache["edges"] = slots
+        return slots
 
     def _point_inverse(self, lin: BlockLinearization, lam: Tensor) -> tuple[Tensor, Tensor]:
         """(V⁻¹ (B, n, 3, 3), ok (B,)) of the damped point blocks, through the Cholesky factor
         of each 3×3 block; a failure marks the whole problem (its V⁻¹ block is then I)."""
         V = damp(lin.point_blocks, lam, self.damping)
         LV, info = torch.linalg.cholesky_ex(V)
-        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
+        eye3 = _series.eye(3, V.dtype, V.device)
         V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
         return V_inv, (info == 0).all(dim=-1)
 
@@ -600,29 +608,43 @@ class LinearPlan:
         """
         B, m, n = self.shape
         pose_index, point_index = self.edges.pose_index, self.edges.point_index
-        batch = torch.arange(B, device=v_d.device)[:, None]
         # (B, 10, n), contiguous so that the broadcast product below comes out contiguous;
         # negated here (exactly: rounding is symmetric) so that no pass negates the result.
         F = (monomials(lin.points) / -v_d[..., None]).transpose(1, 2).contiguous()
         chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 10 * m)))
+        weight = lin.coupling_weight.reshape(-1)
+        if chunk == n:  # one chunk (small problems): its slots are fixed for the solve
+            A = v_d.new_zeros(B * m * n).index_add_(0, self._covisibility_slots(), weight)
+            A = A.reshape(B, m, n)
+            AF = (A[:, None] * F[:, :, None]).reshape(B, 10 * m, n)
+            C = torch.bmm(AF, A.transpose(1, 2))
+            return blocks_from_monomials(C.reshape(B, 10, m, m).permute(0, 2, 3, 1))
+        batch = torch.arange(B, device=v_d.device)[:, None]
         C = v_d.new_zeros(B, 10 * m, m)
-        weight = lin.coupling_weight
         for start in range(0, n, chunk):
             c = min(chunk, n - start)
-            if c == n:
-                inside, local = torch.ones_like(self.edges.active), point_index
-            else:
-                inside = (point_index >= start) & (point_index < start + c)
-                local = (point_index - start).clamp(0, c - 1)
+            inside = (point_index >= start) & (point_index < start + c)
+            local = (point_index - start).clamp(0, c - 1)
             A = v_d.new_zeros(B * m * c).index_add_(
                 0,
                 ((batch * m + pose_index) * c + local).reshape(-1),
-                torch.where(inside, weight, torch.zeros_like(weight)).reshape(-1),
+                torch.where(inside.reshape(-1), weight, torch.zeros_like(weight)),
             )
             A = A.reshape(B, m, c)
             AF = (A[:, None] * F[:, :, None, start : start + c]).reshape(B, 10 * m, c)
-            C = C.baddbmm(AF, A.transpose(1, 2)) if c != n else torch.bmm(AF, A.transpose(1, 2))
+            C = C.baddbmm(AF, A.transpose(1, 2))
         return blocks_from_monomials(C.reshape(B, 10, m, m).permute(0, 2, 3, 1))
+
+    def _covisibility_slots(self) -> Tensor:
+        """(b·m + i)·n + j of every coupling edge (pose i, point j), (B·E',): its entry of the
+        (B, m, n) co-visibility matrix of :meth:`_monomial_products`; made once per plan."""
+        slots = self._cache.get("covisibility")
+        if slots is None:
+            B, m, n = self.shape
+            batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
+            slots = ((batch * m + self.edges.pose_index) * n + self.edges.point_index).reshape(-1)
+            self._cache["covisibility"] = slots
+        return slots
 
     def _factorize_full(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
         """The full (6m + 3n)² system — small problems and cross-checks only. Assembled by
