@@ -71,6 +71,22 @@ def constant(key: object, values: object, dtype: torch.dtype, device: torch.devi
     return table
 
 
+_ROWS: dict[tuple, tuple[Tensor, ...]] = {}
+
+
+def _rows(key: tuple, series: tuple, dtype: torch.dtype, device: torch.device) -> tuple:
+    """The rows of the (terms, k) coefficient table of ``series`` (:func:`constant`), unbound
+    once per (key, dtype, device) (unbinding costs one operation per row)."""
+    full_key = (key, dtype, device)
+    rows = _ROWS.get(full_key)
+    if rows is None:
+        table = constant(key, list(zip(*series, strict=True)), dtype, device)
+        rows = table.unbind(0)
+        if _TABLES.get(full_key) is table:  # cached only where the table is
+            _ROWS[full_key] = rows
+    return rows
+
+
 def eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """``torch.eye(n, dtype, device)`` made once per (n, dtype, device) (:func:`constant`);
     shared: never write to it."""
@@ -82,10 +98,8 @@ def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:
     """:func:`_horner` of several series at the same x, in one pass over a (…, k) stack:
     the same operations per entry (bit for bit the same values), a third of the tensor
     operations for three series."""
-    key = tuple(id(c) for c in series)
-    table = constant(key, list(zip(*series, strict=True)), x.dtype, x.device)
+    rows = _rows(tuple(id(c) for c in series), series, x.dtype, x.device)
     xs = x[..., None]
-    rows = table.unbind(0)
     result = xs * rows[-1] + rows[-2]
     for row in reversed(rows[:-2]):
         result = result * xs + row
