@@ -176,7 +176,7 @@ class _DenseCholesky:
     def solve(self, b: Tensor) -> Tensor:
         """x with A x = b, (B, N) → (B, N); zeros where the factorization failed."""
         x = torch.cholesky_solve(b[..., None], self.L)[..., 0]
-        return torch.where(self.ok[..., None], x, torch.zeros_like(x))
+        return torch.where(self.ok[..., None], x, 0.0)
 
 
 @dataclass
@@ -468,7 +468,9 @@ class LinearPlan:
             else:
                 v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
             w = lin.coupling_weight.reshape(-1)
-            X_e = lin.points.reshape(-1, 3)[point_slot]
+            # The edges are the point observations (no term touches a point in this form).
+            X_e = lin.observed_points
+            X_e = lin.points.reshape(-1, 3)[point_slot] if X_e is None else X_e.reshape(-1, 3)
             elim = _StructuredElimination(w, X_e, v_d, pose_slot, point_slot, self.shape)
             dense = None
             if self.sparse and self._pairs().num_pairs > 0:
