@@ -145,7 +145,8 @@ class PointMapProblem(nn.Module):
                 _gauge.point_term_counts(terms, B, m, n),
             )
 
-        self.pose_tangent = nn.Parameter(se3.log(poses.detach()).clone())
+        # The poses were checked above: the private log (a new tensor) skips checking again.
+        self.pose_tangent = nn.Parameter(se3._log(poses.detach()))
         self.points = nn.Parameter(points.detach().clone())
         # PointMapData makes the padding inert (index 0, observation 0, weight 1, information
         # I), whatever it holds: NaN, Inf, out-of-range indices.

@@ -47,8 +47,8 @@ _ATAN = _coefficients(lambda k: (-1) ** k / (2 * k + 1))
 
 
 def _horner(x: Tensor, coefficients: list[float]) -> Tensor:
-    result = torch.full_like(x, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
+    result = x * coefficients[-1] + coefficients[-2]
+    for c in reversed(coefficients[:-2]):
         result = result * x + c
     return result
 
@@ -71,16 +71,37 @@ def constant(key: object, values: object, dtype: torch.dtype, device: torch.devi
     return table
 
 
+_ROWS: dict[tuple, tuple[Tensor, ...]] = {}
+
+
+def _rows(key: tuple, series: tuple, dtype: torch.dtype, device: torch.device) -> tuple:
+    """The rows of the (terms, k) coefficient table of ``series`` (:func:`constant`), unbound
+    once per (key, dtype, device) (unbinding costs one operation per row)."""
+    full_key = (key, dtype, device)
+    rows = _ROWS.get(full_key)
+    if rows is None:
+        table = constant(key, list(zip(*series, strict=True)), dtype, device)
+        rows = table.unbind(0)
+        if _TABLES.get(full_key) is table:  # cached only where the table is
+            _ROWS[full_key] = rows
+    return rows
+
+
+def eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``torch.eye(n, dtype, device)`` made once per (n, dtype, device) (:func:`constant`);
+    shared: never write to it."""
+    identity = tuple(tuple(float(i == j) for j in range(n)) for i in range(n))
+    return constant(("eye", n), identity, dtype, device)
+
+
 def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:
     """:func:`_horner` of several series at the same x, in one pass over a (…, k) stack:
     the same operations per entry (bit for bit the same values), a third of the tensor
     operations for three series."""
-    key = tuple(id(c) for c in series)
-    table = constant(key, list(zip(*series, strict=True)), x.dtype, x.device)
+    rows = _rows(tuple(id(c) for c in series), series, x.dtype, x.device)
     xs = x[..., None]
-    rows = table.unbind(0)
-    result = rows[-1].expand(*x.shape, len(series))
-    for row in reversed(rows[:-1]):
+    result = xs * rows[-1] + rows[-2]
+    for row in reversed(rows[:-2]):
         result = result * xs + row
     return result.unbind(-1)
 
@@ -88,7 +109,7 @@ def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:
 def _split(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Return (small mask, safe θ², safe θ) for the double-where idiom."""
     small = theta2 < SMALL_ANGLE_SQUARED[theta2.dtype]
-    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta2_safe = torch.where(small, 1.0, theta2)
     return small, theta2_safe, torch.sqrt(theta2_safe)
 
 
@@ -157,9 +178,9 @@ def atan_ratio(y: Tensor, x: Tensor) -> Tensor:
     # no cancellation, only the 0/0 at y = 0 to avoid. Both branches see safe inputs, so the
     # gradient is finite at y = 0 and at x = 0 (θ = π).
     small = y * y < 1e-2 * (x * x)
-    x_safe = torch.where(small, x, torch.ones_like(x))
-    r2 = torch.where(small, (y / x_safe) ** 2, torch.zeros_like(y))
-    y_safe = torch.where(small, torch.ones_like(y), y)
+    x_safe = torch.where(small, x, 1.0)
+    r2 = torch.where(small, (y / x_safe) ** 2, 0.0)
+    y_safe = torch.where(small, 1.0, y)
     closed = torch.atan2(y_safe, x) / y_safe
     return torch.where(small, _horner(r2, _ATAN) / x_safe, closed)
 
@@ -174,8 +195,8 @@ def atan_ratio_squared(y2: Tensor, x: Tensor) -> Tensor:
     derivatives are finite, and exact, at y2 = 0.
     """
     small = y2 < 1e-2 * (x * x)
-    x_safe = torch.where(small, x, torch.ones_like(x))
-    r2 = torch.where(small, y2 / (x_safe * x_safe), torch.zeros_like(y2))
-    y_safe = torch.sqrt(torch.where(small, torch.ones_like(y2), y2))
+    x_safe = torch.where(small, x, 1.0)
+    r2 = torch.where(small, y2 / (x_safe * x_safe), 0.0)
+    y_safe = torch.sqrt(torch.where(small, 1.0, y2))
     closed = torch.atan2(y_safe, x) / y_safe
     return torch.where(small, _horner(r2, _ATAN) / x_safe, closed)

@@ -147,7 +147,13 @@ def _axis_angle_to_quaternion(omega: Tensor) -> Tensor:
 
 def _quaternion_to_axis_angle(q: Tensor) -> Tensor:
     """Rotation vector of unit quaternions (..., 4), angle θ = 2·atan2(|v|, |w|) ∈ [0, π]."""
-    q = _canonical(q)  # q ≡ −q: the representative with w ≥ 0 gives θ ≤ π
+    # q ≡ −q: the representative with w ≥ 0 gives θ ≤ π.
+    return _canonical_quaternion_to_axis_angle(_canonical(q))
+
+
+def _canonical_quaternion_to_axis_angle(q: Tensor) -> Tensor:
+    """:func:`_quaternion_to_axis_angle` of unit quaternions (..., 4) that have w ≥ 0 already
+    (those of :func:`_matrix_to_quaternion`)."""
     w, v = q[..., 0], q[..., 1:]
     # ω = θ v / |v|; the ratio atan2(|v|, w)/|v| is exact at |v| = 0 and at w = 0 (θ = π). It
     # is read off |v|², never |v| (whose derivative is 0/0 at v = 0), so that second

@@ -203,31 +203,35 @@ def _jl_coefficients(p: _Polar, b: Tensor | None = None) -> tuple[Tensor, Tensor
     )
 
 
+# _skew_quadratic: entry (r, c) of the 3 × 3 result, row-major, as (k, l) with the quadratic
+# part (second·w_k)·w_l (the same product for (r, c) and (c, r)), and as an index into
+# (1 − second·θ², first·w, −first·w) for the rest: the diagonal, or ±first·w of [w]×.
+_QUADRATIC_FIRST = (0, 0, 0, 0, 1, 1, 0, 1, 2)
+_QUADRATIC_SECOND = (0, 1, 2, 1, 1, 2, 2, 2, 2)
+_LINEAR = (0, 6, 2, 3, 0, 4, 5, 1, 0)
+
+
 def _skew_quadratic(omega: Tensor, theta2: Tensor, first: Tensor, second: Tensor) -> Tensor:
     """I + first·[ω]× + second·[ω]×², built entrywise from [ω]×² = ωωᵀ − θ² I.
 
     Rodrigues' R (first = sin θ/θ, second = (1 − cos θ)/θ²) and the left Jacobian
     (first = (1 − cos θ)/θ², second = (θ − sin θ)/θ³) both have this form; building the nine
-    entries directly avoids two batched 3×3 matmuls.
+    entries directly avoids two batched 3×3 matmuls. Entry (r, c) is
+    (1 − second·θ²)·[r = c] + (second·ω_r)·ω_c ± first·ω_k, the quadratic part formed once
+    for each pair r ≤ c (so the result is exactly symmetric in it), all nine entries by a few
+    whole-tensor operations (small batches are bound by their number).
     """
-    x, y, z = omega.unbind(-1)
-    diagonal = 1.0 - second * theta2
-    fx, fy, fz = first * x, first * y, first * z
-    sxy, sxz, syz = second * x * y, second * x * z, second * y * z
-    return torch.stack(
-        (
-            diagonal + second * x * x,
-            sxy - fz,
-            sxz + fy,
-            sxy + fz,
-            diagonal + second * y * y,
-            syz - fx,
-            sxz - fy,
-            syz + fx,
-            diagonal + second * z * z,
-        ),
-        dim=-1,
-    ).unflatten(-1, (3, 3))
+    device = omega.device
+    second_w = second[..., None] * omega
+    quadratic = second_w.index_select(
+        -1, _series.constant("quadratic first", _QUADRATIC_FIRST, torch.long, device)
+    ) * omega.index_select(
+        -1, _series.constant("quadratic second", _QUADRATIC_SECOND, torch.long, device)
+    )
+    first_w = first[..., None] * omega
+    linear = torch.cat(((1.0 - second * theta2)[..., None], first_w, -first_w), dim=-1)
+    linear = linear.index_select(-1, _series.constant("skew linear", _LINEAR, torch.long, device))
+    return (linear + quadratic).unflatten(-1, (3, 3))
 
 
 def _exp(omega: Tensor) -> Tensor:
@@ -266,7 +270,7 @@ def exp(omega: Tensor, *, form: Form = "robust") -> Tensor:
 
 def _log(R: Tensor) -> Tensor:
     # Through the unit quaternion: the one quaternion code is in convert.
-    return convert._quaternion_to_axis_angle(convert._matrix_to_quaternion(R))
+    return convert._canonical_quaternion_to_axis_angle(convert._matrix_to_quaternion(R))
 
 
 def log(R: Tensor) -> Tensor:

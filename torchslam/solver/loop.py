@@ -19,6 +19,7 @@ Nielsen's update: accepted (ϱ > 0): λ ← λ·max(⅓, 1 − (2ϱ − 1)³), �
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ from torch import Tensor
 
 from torchslam import manifold
 from torchslam._threads import threads_for
+from torchslam.lie import _series
 from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import linearize, model_decrease, whitening_factors
@@ -76,6 +78,11 @@ class State:
     linear_solve_seconds: float = 0.0
 
 
+def _finite(x: Tensor) -> Tensor:
+    """``torch.isfinite(x)`` of a float tensor in two operations (isfinite takes seven)."""
+    return x.abs() < math.inf
+
+
 def gradient_norm(lin) -> Tensor:
     """max |g| over poses and points, (B,)."""
     # One cat, so that a problem without points (pose terms only) works too.
@@ -103,7 +110,7 @@ def initial_state(
         int(Status.CONVERGED_GRADIENT),
         status,
     )
-    status = torch.where(torch.isfinite(lin.cost.detach()), status, int(Status.NON_FINITE))
+    status = torch.where(_finite(lin.cost.detach()), status, int(Status.NON_FINITE))
     return State(
         xi=xi,
         X=X,
@@ -167,32 +174,37 @@ def update_status(
 
     ``MAX_ITERATIONS`` is set by :func:`run` when the loop ends.
     """
-    running = status == int(Status.RUNNING)
     f_conv = accepted & ((old_cost - new_cost).abs() <= config.function_tolerance * old_cost)
     if predicted is not None:
         # A negative prediction is an indefinite model (round-off in a damped factor whose
         # sign check was skipped), never "nothing left to gain".
         small = (predicted >= 0) & (predicted <= config.function_tolerance * old_cost)
-        f_conv = f_conv | (active & ok & small)
+        f_conv = f_conv | (ok & small)
+    # The rules that apply to active problems, in order, then those that apply to every
+    # running one: one stacked (R, B) tensor and the first rule that holds per problem (a few
+    # whole-tensor operations, however many rules).
     rules = [
-        (active & f_conv, Status.CONVERGED_FUNCTION),
-        (active & (gradient <= config.gradient_tolerance), Status.CONVERGED_GRADIENT),
-        (
-            active
-            & ok
-            & (step_norm <= config.parameter_tolerance * (x_norm + config.parameter_tolerance)),
-            Status.CONVERGED_PARAMETER,
-        ),
+        f_conv,
+        gradient <= config.gradient_tolerance,
+        ok & (step_norm <= config.parameter_tolerance * (x_norm + config.parameter_tolerance)),
     ]
+    outcomes = [Status.CONVERGED_FUNCTION, Status.CONVERGED_GRADIENT, Status.CONVERGED_PARAMETER]
     if config.algorithm == "gauss_newton":
-        rules.append((active & ~ok, Status.LINEAR_SOLVE_FAILED))
+        rules.append(~ok)
+        outcomes.append(Status.LINEAR_SOLVE_FAILED)
+    holds = [torch.stack(rules) & active]
     if config.algorithm == "levenberg_marquardt":
-        rules.append((lam > config.max_lambda, Status.DAMPING_LIMIT))
-    rules.append((active & ~torch.isfinite(cost), Status.NON_FINITE))
-    for holds, outcome in rules:
-        status = torch.where(running & holds, int(outcome), status)
-        running = status == int(Status.RUNNING)
-    return status
+        holds.append((lam > config.max_lambda)[None])
+        outcomes.append(Status.DAMPING_LIMIT)
+    holds.append((active & ~_finite(cost))[None])
+    outcomes.append(Status.NON_FINITE)
+    holds = torch.cat(holds)
+    codes = _series.constant(
+        ("status codes", *outcomes), [int(o) for o in outcomes], torch.long, status.device
+    )
+    first = codes.index_select(0, holds.to(torch.uint8).argmax(0))  # the first that holds
+    stops = (status == int(Status.RUNNING)) & holds.any(0)
+    return torch.where(stops, first, status)
 
 
 def iterate(
@@ -219,7 +231,7 @@ def iterate(
         active = (status == running) & (iterations < config.max_iterations)
         if not bool(active.any()):
             break
-        iterations = iterations + active.long()
+        iterations = iterations + active  # long + bool: long
         tick = time.perf_counter()
         if algorithm == "gradient_descent":
             dp = -lam[:, None, None] * lin.pose_gradient
@@ -239,7 +251,7 @@ def iterate(
             step_norm = torch.sqrt(dp.square().flatten(1).sum(-1) + dl.square().flatten(1).sum(-1))
             x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
             old_cost, new_cost = cost.detach(), lin_new.cost.detach()
-            finite = torch.isfinite(new_cost) & torch.isfinite(step_norm)
+            finite = _finite(new_cost) & _finite(step_norm)
             predicted = None
             if algorithm == "levenberg_marquardt":
                 predicted = model_decrease(lin, data, dp, dl)
@@ -255,9 +267,10 @@ def iterate(
             else:
                 accepted = active & finite & (new_cost < old_cost)
                 lam = torch.where(active & ~accepted, lam * 0.5, lam)
-        accepted_total = accepted_total + accepted.long()
-        xi = torch.where(accepted[:, None, None], xi_new, xi)
-        X = torch.where(accepted[:, None, None], X_new, X)
+        accepted_total = accepted_total + accepted
+        take = accepted[:, None, None]
+        xi = torch.where(take, xi_new, xi)
+        X = torch.where(take, X_new, X)
         cost = torch.where(accepted, lin_new.cost, cost)
         # Whole-batch outcomes (every solve of one problem) keep one of the two as it is.
         taken = int(accepted.sum())
@@ -359,9 +372,11 @@ def _run(pose_tangent, points, data, config, on_step, report_initial, plan):
     history = Histories([state.cost.detach().clone()], [state.lam.clone()], [])
 
     def record(s: State) -> None:
-        history.costs.append(s.cost.detach().clone())
-        history.lambdas.append(s.lam.clone())
-        history.steps.append(s.step_norm.clone())
+        # No copies: the loop makes new tensors every iteration and never writes to them,
+        # and :func:`result` stacks the histories.
+        history.costs.append(s.cost.detach())
+        history.lambdas.append(s.lam)
+        history.steps.append(s.step_norm)
         if on_step is not None:
             on_step(s)
 

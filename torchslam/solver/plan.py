@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam.lie import _series
 from torchslam.lie.so3 import hat
 from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
@@ -71,7 +72,7 @@ __all__ = [
 def damp(blocks: Tensor, lam: Tensor, damping: str) -> Tensor:
     """Add λD to square diagonal blocks (B, k, d, d); D = diag(block) clamped (Marquardt,
     as Ceres: [1e-6, 1e32]) or I (Levenberg). ``lam`` has shape (B,)."""
-    eye = torch.eye(blocks.shape[-1], dtype=blocks.dtype, device=blocks.device)
+    eye = _series.eye(blocks.shape[-1], blocks.dtype, blocks.device)
     if damping == "levenberg":
         D = eye
     else:
@@ -175,7 +176,7 @@ class _DenseCholesky:
     def solve(self, b: Tensor) -> Tensor:
         """x with A x = b, (B, N) → (B, N); zeros where the factorization failed."""
         x = torch.cholesky_solve(b[..., None], self.L)[..., 0]
-        return torch.where(self.ok[..., None], x, torch.zeros_like(x))
+        return torch.where(self.ok[..., None], x, 0.0)
 
 
 @dataclass
@@ -396,6 +397,8 @@ class LinearPlan:
     diagonal_slots: Tensor | None = None
     # Keys of all the terms' pose-pair blocks, flat (B·P,) (the full system adds them all).
     term_keys: Tensor | None = None
+    # Index tensors made on first use and kept for the solve (_edge_slots, ...).
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @staticmethod
     def build(data: PointMapData, config: SolverConfig) -> LinearPlan:
@@ -470,7 +473,9 @@ class LinearPlan:
             else:
                 v_d = v + lam[:, None] * v.clamp(1e-6, 1e32)
             w = lin.coupling_weight.reshape(-1)
-            X_e = lin.points.reshape(-1, 3)[point_slot]
+            # The edges are the point observations (no term touches a point in this form).
+            X_e = lin.observed_points
+            X_e = lin.points.reshape(-1, 3)[point_slot] if X_e is None else X_e.reshape(-1, 3)
             elim = _StructuredElimination(w, X_e, v_d, pose_slot, point_slot, self.shape)
             dense = None
             if self.sparse and self._pairs().num_pairs > 0:
@@ -571,20 +576,25 @@ class LinearPlan:
         return upper
 
     def _edge_slots(self) -> tuple[Tensor, Tensor]:
-        """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',)."""
-        B, m, n = self.shape
-        batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
-        return (
-            (batch * m + self.edges.pose_index).reshape(-1),
-            (batch * n + self.edges.point_index).reshape(-1),
-        )
+        """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',);
+        made once per plan."""
+        slots = self._cache.get("edges")
+        if slots is None:
+            B, m, n = self.shape
+            batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
+            slots = (
+                (batch * m + self.edges.pose_index).reshape(-1),
+                (batch * n + self.edges.point_index).reshape(-1),
+            )
+            self._cache["edges"] = slots
+        return slots
 
     def _point_inverse(self, lin: BlockLinearization, lam: Tensor) -> tuple[Tensor, Tensor]:
         """(V⁻¹ (B, n, 3, 3), ok (B,)) of the damped point blocks, through the Cholesky factor
         of each 3×3 block; a failure marks the whole problem (its V⁻¹ block is then I)."""
         V = damp(lin.point_blocks, lam, self.damping)
         LV, info = torch.linalg.cholesky_ex(V)
-        eye3 = torch.eye(3, dtype=V.dtype, device=V.device)
+        eye3 = _series.eye(3, V.dtype, V.device)
         V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
         return V_inv, (info == 0).all(dim=-1)
 
@@ -619,15 +629,17 @@ class LinearPlan:
         parts: list[Tensor] = []
         for start in range(0, n, chunk):
             c = min(chunk, n - start)
-            if c == n:
-                values, local = weight, point_index
+            if c == n:  # one chunk: its slots are fixed for the solve
+                A = v_d.new_zeros(B * m * n).index_add_(
+                    0, self._covisibility_slots(), weight.reshape(-1)
+                )
             else:
                 inside = (point_index >= start) & (point_index < start + c)
                 values = torch.where(inside, weight, torch.zeros_like(weight))
                 local = (point_index - start).clamp(0, c - 1)
-            A = v_d.new_zeros(B * m * c).index_add_(
-                0, ((batch * m + pose_index) * c + local).reshape(-1), values.reshape(-1)
-            )
+                A = v_d.new_zeros(B * m * c).index_add_(
+                    0, ((batch * m + pose_index) * c + local).reshape(-1), values.reshape(-1)
+                )
             P = A.reshape(B, 1, m, c) * s[:, :, None, start : start + c]
             for a in range(4):  # the rows (b ≥ a, a) of C: P_{a..3} P_aᵀ
                 product = P[:, a:].reshape(B, (4 - a) * m, c)
@@ -638,6 +650,17 @@ class LinearPlan:
         C = torch.cat(parts, 1)  # (B, 10 m, m): the 10 symmetric (m × m) sums
         blocks = _monomial_selection(C.dtype, C.device) @ C.reshape(B, 10, m * m)
         return blocks.reshape(B, 6, 6, m, m).permute(0, 3, 1, 4, 2).reshape(B, 6 * m, 6 * m)
+
+    def _covisibility_slots(self) -> Tensor:
+        """(b·m + i)·n + j of every coupling edge (pose i, point j), (B·E',): its entry of the
+        (B, m, n) co-visibility matrix of :meth:`_monomial_products`; made once per plan."""
+        slots = self._cache.get("covisibility")
+        if slots is None:
+            B, m, n = self.shape
+            batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
+            slots = ((batch * m + self.edges.pose_index) * n + self.edges.point_index).reshape(-1)
+            self._cache["covisibility"] = slots
+        return slots
 
     def _factorize_full(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
         """The full (6m + 3n)² system — small problems and cross-checks only. Assembled by
