@@ -213,8 +213,14 @@ class DenseReduced:
             return full if dense is None else full + dense
         if dense is None:
             return A.transpose(2, 3).reshape(B, 6 * m, 6 * m)
-        # dense's diagonal blocks (B, 6, 6, m) += A's (B, 6, 6, m)
-        dense.view(B, m, 6, m, 6).diagonal(0, 1, 3).add_(A.diagonal(0, 1, 2))
+        return DenseReduced.add_diagonal(dense, A.diagonal(0, 1, 2).permute(0, 3, 1, 2))
+
+    @staticmethod
+    def add_diagonal(dense: Tensor, blocks: Tensor) -> Tensor:
+        """``dense`` (B, 6m, 6m) with the 6 × 6 ``blocks`` (B, m, 6, 6) added to its diagonal
+        blocks, in place; returns ``dense``."""
+        B, m = blocks.shape[:2]
+        dense.view(B, m, 6, m, 6).diagonal(0, 1, 3).add_(blocks.permute(0, 2, 3, 1))
         return dense
 
     def factor(
@@ -464,7 +470,7 @@ class LinearPlan:
         n = self.shape[2]
         # Damped (λ > 0): JᵀJ + λD is positive definite, so is its Schur complement S.
         definite = self.sparse and bool((lam > 0).all())
-        upper = self._pose_side(lin, lam)
+        U = damp(lin.pose_blocks, lam, self.damping)
         pose_slot, point_slot = self._edge_slots()
         if isinstance(lin, StructuredLinearization):
             v = lin.point_weight
@@ -477,7 +483,6 @@ class LinearPlan:
             X_e = lin.observed_points
             X_e = lin.points.reshape(-1, 3)[point_slot] if X_e is None else X_e.reshape(-1, 3)
             elim = _StructuredElimination(w, X_e, v_d, pose_slot, point_slot, self.shape)
-            dense = None
             if self.sparse and self._pairs().num_pairs > 0:
                 pairs = self._pairs()
                 coefficient = -(w[pairs.first] * w[pairs.second]) / v_d.reshape(-1)[pairs.point]
@@ -486,19 +491,18 @@ class LinearPlan:
                 mono = monomials(lin.points.reshape(-1, 3)[pairs.point]) * coefficient[:, None]
                 sums = mono.new_zeros(self.reduced.num_slots, 10)
                 sums = sums.index_add(0, self.pair_slots, mono)
-                upper = upper + blocks_from_monomials(sums)
-            elif not self.sparse and n > 0:
-                dense = self._monomial_products(lin, v_d)
-            if dense is None:
+                upper = self._upper(U, lin) + blocks_from_monomials(sums)
                 factor = self.reduced.factor(upper, None, definite)
-            else:  # upper holds off-diagonal blocks only when terms add pose pairs
-                has_pairs = lin.terms is not None and self.term_positions.numel() > 0
-                factor = self.reduced.factor(upper, dense, definite, mirror=has_pairs)
+            elif not self.sparse and n > 0:
+                factor = self._factor_dense(U, lin, self._monomial_products(lin, v_d))
+            else:
+                factor = self.reduced.factor(self._upper(U, lin), None, definite)
             return Factorization(factor, elim, None, self.shape)
         V_inv, point_ok = self._point_inverse(lin, lam)
         W = lin.coupling.reshape(-1, 6, 3)
         elim = _BlockElimination(W, V_inv, pose_slot, point_slot, self.shape)
         pairs = self._pairs()
+        upper = self._upper(U, lin)
         if pairs.num_pairs:
             Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
             slots = self.pair_slots if self.pair_slots is not None else pairs.key
@@ -534,9 +538,8 @@ class LinearPlan:
                 "reduced system"
             )
         B, m, n = self.shape
-        upper = self._pose_side(lin, lam)
-        has_pairs = lin.terms is not None and self.term_positions.numel() > 0
-        batch = torch.arange(B, device=upper.device)[:, None]
+        U = damp(lin.pose_blocks, lam, self.damping)
+        batch = torch.arange(B, device=U.device)[:, None]
         pose_slot, point_slot = self._edge_slots()
         V_inv, point_ok = self._point_inverse(lin, lam)
         W = lin.coupling.reshape(-1, 6, 3)
@@ -544,7 +547,7 @@ class LinearPlan:
         Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
         pose_index, point_index = self.edges.pose_index, self.edges.point_index
         chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 18 * m)))
-        C = upper.new_zeros(B, 6 * m, 6 * m)
+        C = U.new_zeros(B, 6 * m, 6 * m)
         for start in range(0, n, chunk):
             c = min(chunk, n - start)
             if c == n:
@@ -561,19 +564,31 @@ class LinearPlan:
                 D = blocks.new_zeros(B * m * c, 6, 3).index_add_(0, slots, values)
                 dense.append(D.reshape(B, m, c, 6, 3).transpose(2, 3).reshape(B, 6 * m, 3 * c))
             C = C.baddbmm(dense[1], dense[0].transpose(1, 2), alpha=-1.0)
-        factor = self.reduced.factor(upper, C, False, mirror=has_pairs)
-        return Factorization(factor, elim, point_ok, self.shape)
+        return Factorization(self._factor_dense(U, lin, C), elim, point_ok, self.shape)
 
-    def _pose_side(self, lin: BlockLinearization | StructuredLinearization, lam: Tensor) -> Tensor:
+    def _has_term_pairs(self, lin: BlockLinearization | StructuredLinearization) -> bool:
+        """Whether terms add blocks between two poses (off the diagonal of S)."""
+        return lin.terms is not None and self.term_positions.numel() > 0
+
+    def _upper(self, U: Tensor, lin: BlockLinearization | StructuredLinearization) -> Tensor:
         """The reduced system's upper blocks before the points' part: the damped pose blocks
-        U + λD on the diagonal slots and the terms' pose pairs, (num_slots, 6, 6)."""
-        U = damp(lin.pose_blocks, lam, self.damping)
+        ``U`` (B, m, 6, 6) on the diagonal slots and the terms' pose pairs, (num_slots, 6, 6)."""
         upper = U.new_zeros(self.reduced.num_slots, 6, 6)
         upper = upper.index_add(0, self.diagonal_slots, U.reshape(-1, 6, 6))
-        if lin.terms is not None and self.term_positions.numel() > 0:
+        if self._has_term_pairs(lin):
             blocks = lin.terms.pair_blocks.reshape(-1, 6, 6)[self.term_positions]
             upper = upper.index_add(0, self.term_slots, blocks)
         return upper
+
+    def _factor_dense(
+        self, U: Tensor, lin: BlockLinearization | StructuredLinearization, points_part: Tensor
+    ) -> _DenseCholesky:
+        """Factor the dense S = pose side + ``points_part`` (B, 6m, 6m), which is overwritten;
+        without term pairs the damped pose blocks ``U`` go straight onto its diagonal (no
+        (B·m·m, 6, 6) slot buffer)."""
+        if self._has_term_pairs(lin):
+            return self.reduced.factor(self._upper(U, lin), points_part, mirror=True)
+        return _DenseCholesky.of(DenseReduced.add_diagonal(points_part, U))
 
     def _edge_slots(self) -> tuple[Tensor, Tensor]:
         """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',);
