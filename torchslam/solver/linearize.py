@@ -1,7 +1,7 @@
 """Linearize: residuals and Jacobians at the current estimate → normal-equation blocks.
 
-Two forms, chosen per iteration by :func:`linearize`; both are accumulated with ``index_add``
-from per-observation quantities — never a dense J.
+Two forms, chosen per iteration by :func:`linearize`; both are summed from per-observation
+quantities by :func:`.segments.segment_sum` (``index_add``) — never a dense J.
 
 **Block form** (general: information matrices, the ``jacrev`` Jacobian mode, robust kernels
 with curvature correction). For each observation e = (i, j), the whitened residual r̃ = Lᵀ r
@@ -69,6 +69,7 @@ from torchslam.objective.terms import (
     terms_cost,
 )
 from torchslam.objective.whitening import whiten, whitening
+from torchslam.solver.segments import segment_sum
 
 __all__ = [
     "BlockLinearization",
@@ -359,19 +360,20 @@ def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, 
 def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
     B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
-    pose_slot, point_slot = _slots(data)
+    # the cached (B, E) indices: segment_sum keeps its sparse matrices per index tensor
+    pose_index, point_index = data.flat_pose_index, data.flat_point_index
     # q_e = J_Xᵀ w r = −w Rᵀ r; then J_ξᵀ w r = G_jᵀ q = [X × q; q].
     q = -w[..., None] * (T_e[..., :3, :3].transpose(-1, -2) @ r[..., None])[..., 0]
     q_point = q * free_point[..., None]
     q_pose = q * free_pose[..., None]
     g_pose_e = torch.cat((torch.linalg.cross(X_e, q_pose, dim=-1), q_pose), -1)
-    gp = r.new_zeros(B * m, 6).index_add_(0, pose_slot, g_pose_e.reshape(-1, 6))
-    gl = r.new_zeros(B * n, 3).index_add_(0, point_slot, q_point.reshape(-1, 3))
+    gp = segment_sum(pose_index, B * m, g_pose_e.reshape(-1, 6))
+    gl = segment_sum(point_index, B * n, q_point.reshape(-1, 3))
     # U_i = Σ w G_jᵀ G_j from weighted monomial sums.
     mono = monomials(X_e) * (w * free_pose)[..., None]
-    sums = r.new_zeros(B * m, 10).index_add_(0, pose_slot, mono.reshape(-1, 10))
+    sums = segment_sum(pose_index, B * m, mono.reshape(-1, 10))
     U = blocks_from_monomials(sums).reshape(B, m, 6, 6)
-    v = r.new_zeros(B * n).index_add_(0, point_slot, (w * free_point).reshape(-1)).reshape(B, n)
+    v = segment_sum(point_index, B * n, (w * free_point).reshape(-1)).reshape(B, n)
     U = torch.where(data.fixed_poses[..., None, None], _series.eye(6, U.dtype, U.device), U)
     v = torch.where(data.fixed_points, 1.0, v)
     return StructuredLinearization(
@@ -425,11 +427,11 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
     cost, rw, Jw, scale, JtJ, Jtr = instance_blocks(
         r, J, data.valid, whitening, data.masked_weights(), data.loss
     )
-    pose_slot, point_slot = _slots(data)
-    U = JtJ.new_zeros(B * m, 6, 6).index_add_(0, pose_slot, JtJ[..., :6, :6].reshape(-1, 6, 6))
-    V = JtJ.new_zeros(B * n, 3, 3).index_add_(0, point_slot, JtJ[..., 6:, 6:].reshape(-1, 3, 3))
-    gp = Jtr.new_zeros(B * m, 6).index_add_(0, pose_slot, Jtr[..., :6].reshape(-1, 6))
-    gl = Jtr.new_zeros(B * n, 3).index_add_(0, point_slot, Jtr[..., 6:].reshape(-1, 3))
+    pose_index, point_index = data.flat_pose_index, data.flat_point_index
+    U = segment_sum(pose_index, B * m, JtJ[..., :6, :6].reshape(-1, 6, 6))
+    V = segment_sum(point_index, B * n, JtJ[..., 6:, 6:].reshape(-1, 3, 3))
+    gp = segment_sum(pose_index, B * m, Jtr[..., :6].reshape(-1, 6))
+    gl = segment_sum(point_index, B * n, Jtr[..., 6:].reshape(-1, 3))
     eye6, eye3 = _series.eye(6, U.dtype, U.device), _series.eye(3, U.dtype, U.device)
     U = torch.where(data.fixed_poses[..., None, None], eye6, U.reshape(B, m, 6, 6))
     V = torch.where(data.fixed_points[..., None, None], eye3, V.reshape(B, n, 3, 3))

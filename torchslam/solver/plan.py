@@ -55,6 +55,7 @@ from torchslam.solver.linearize import (
     monomials,
     term_pair_keys,
 )
+from torchslam.solver.segments import segment_sum
 from torchslam.solver.sparse import BlockPattern, SparseFactor, factorization_work
 
 __all__ = [
@@ -293,14 +294,14 @@ class _BlockElimination:
         B, m, _ = self.shape
         y_e = y.reshape(-1, 3)[self.point_slot]
         Wy = (self.W @ y_e[..., None])[..., 0]
-        return Wy.new_zeros(B * m, 6).index_add(0, self.pose_slot, Wy).reshape(B, m, 6)
+        return segment_sum(self.pose_slot, B * m, Wy).reshape(B, m, 6)
 
     def couple_transposed(self, dp: Tensor) -> Tensor:
         """Σ_e W_eᵀ δp_i(e) per point, dp (B, m, 6) → (B, n, 3)."""
         B, _, n = self.shape
         dp_e = dp.reshape(-1, 6)[self.pose_slot]
         Wt_dp = (self.W.transpose(-1, -2) @ dp_e[..., None])[..., 0]
-        return Wt_dp.new_zeros(B * n, 3).index_add(0, self.point_slot, Wt_dp).reshape(B, n, 3)
+        return segment_sum(self.point_slot, B * n, Wt_dp).reshape(B, n, 3)
 
 
 @dataclass
@@ -327,14 +328,14 @@ class _StructuredElimination:
         B, m, _ = self.shape
         y_e = self.weight[:, None] * y.reshape(-1, 3)[self.point_slot]
         Gty = torch.cat((torch.linalg.cross(self.X_e, y_e, dim=-1), y_e), -1)
-        return Gty.new_zeros(B * m, 6).index_add(0, self.pose_slot, Gty).reshape(B, m, 6)
+        return segment_sum(self.pose_slot, B * m, Gty).reshape(B, m, 6)
 
     def couple_transposed(self, dp: Tensor) -> Tensor:
         B, _, n = self.shape
         dp_e = dp.reshape(-1, 6)[self.pose_slot]
         G_dp = torch.linalg.cross(dp_e[:, :3], self.X_e, dim=-1) + dp_e[:, 3:]
         w_G_dp = self.weight[:, None] * G_dp
-        return w_G_dp.new_zeros(B * n, 3).index_add(0, self.point_slot, w_G_dp).reshape(B, n, 3)
+        return segment_sum(self.point_slot, B * n, w_G_dp).reshape(B, n, 3)
 
 
 @dataclass

@@ -1,0 +1,84 @@
+"""Segment sums by a fixed index: ``out[r] = Σ_{e: index[e] = r} values[e]``.
+
+The solver sums per-observation quantities into per-pose and per-point rows every iteration
+(gradients, the structured linearization's monomial sums and weights, the Schur
+back-substitution) with the same index for the whole solve. ``index_add_`` does that one row at
+a time on one thread. On the CPU, outside autograd, :func:`segment_sum` instead multiplies the
+values by a CSR matrix of ones built once per index (cached while the index tensor lives and is
+not modified in place): MKL's sparse product, 4–10× faster for 100,000 observations. Each
+output row adds its entries in edge order, as ``index_add_`` does. Elsewhere (CUDA, values that
+need gradients, ``torch.func`` transforms, small inputs) it is ``index_add_``.
+"""
+
+from __future__ import annotations
+
+import warnings
+import weakref
+
+import torch
+from torch import Tensor
+
+__all__ = ["SPARSE_MIN_EDGES", "segment_sum"]
+
+# Below this many edges index_add_ is as fast (the sparse product's fixed cost dominates).
+SPARSE_MIN_EDGES = 4096
+
+# id(index) → (weak reference to the index, its _version, rows, float dtype, the CSR matrix of
+# ones (rows, N)); an entry leaves when its index tensor is freed. (Not a WeakKeyDictionary:
+# its key comparison would call the tensors' elementwise ==.)
+_CSR: dict[int, tuple] = {}
+
+
+def segment_sum(index: Tensor, rows: int, values: Tensor) -> Tensor:
+    """``values.new_zeros(rows, *tail).index_add_(0, index.reshape(-1), values)``.
+
+    Args:
+        index: long tensor of any shape with N entries in [0, rows); keep the same tensor
+            object across calls to reuse its cached sparse matrix.
+        rows: number of output rows.
+        values: (N, *tail) floating tensor.
+
+    Returns:
+        (rows, *tail) sums.
+    """
+    tail = values.shape[1:]
+    if not _sparse_applies(index, values):
+        return values.new_zeros(rows, *tail).index_add_(0, index.reshape(-1), values)
+    ones = _csr(index, rows, values.dtype)
+    return (ones @ values.reshape(values.shape[0], -1)).reshape(rows, *tail)
+
+
+def _sparse_applies(index: Tensor, values: Tensor) -> bool:
+    return (
+        type(values) is torch.Tensor
+        and type(index) is torch.Tensor
+        and values.device.type == "cpu"
+        and values.dtype in (torch.float32, torch.float64)
+        and values.shape[0] >= SPARSE_MIN_EDGES
+        and values.numel() > 0
+        and not (torch.is_grad_enabled() and values.requires_grad)
+        and not torch._C._functorch.is_functorch_wrapped_tensor(values)
+    )
+
+
+def _csr(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
+    key = id(index)
+    cached = _CSR.get(key)
+    if cached is not None and cached[0]() is index and cached[1:4] == (index._version, rows, dtype):
+        return cached[4]
+    flat = index.reshape(-1)
+    order = torch.argsort(flat, stable=True)
+    crow = torch.zeros(rows + 1, dtype=torch.int64)
+    torch.cumsum(torch.bincount(flat, minlength=rows), 0, out=crow[1:])
+    with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta state"
+        warnings.simplefilter("ignore", UserWarning)
+        ones = torch.sparse_csr_tensor(
+            crow,
+            order,
+            torch.ones(flat.numel(), dtype=dtype),
+            size=(rows, flat.numel()),
+            check_invariants=False,
+        )
+    reference = weakref.ref(index, lambda _, key=key: _CSR.pop(key, None))
+    _CSR[key] = (reference, index._version, rows, dtype, ones)
+    return ones
