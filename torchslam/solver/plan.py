@@ -439,7 +439,7 @@ class LinearPlan:
         else:
             reduced = DenseReduced(B, m)
             pair_slots = None
-        return LinearPlan(
+        plan = LinearPlan(
             "schur",
             config.damping,
             reduced,
@@ -452,6 +452,13 @@ class LinearPlan:
             pair_slots=pair_slots,
             diagonal_slots=reduced.slots(_diagonal_keys(B, m, device)),
         )
+        if edges.pose_index is data.pose_index:  # the edges are the observations: the
+            # linearization's flat indices are the edge slots (one cached sparse matrix each)
+            plan._cache["edges"] = (
+                data.flat_pose_index.reshape(-1),
+                data.flat_point_index.reshape(-1),
+            )
+        return plan
 
     @property
     def sparse(self) -> bool:

@@ -62,6 +62,15 @@ def _sparse_applies(index: Tensor, values: Tensor) -> bool:
 
 
 def _csr(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
+    base = index._base
+    if (
+        base is not None
+        and base.is_contiguous()
+        and index.is_contiguous()
+        and index.numel() == base.numel()
+        and index.storage_offset() == base.storage_offset()
+    ):
+        index = base  # a full reshape: the same entries in the same order share one matrix
     key = id(index)
     cached = _CSR.get(key)
     if cached is not None and cached[0]() is index and cached[1:4] == (index._version, rows, dtype):
