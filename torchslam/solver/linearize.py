@@ -49,7 +49,7 @@ import torch
 from torch import Tensor
 
 from torchslam import losses
-from torchslam._batched import matmul
+from torchslam._batched import matmul, sum_last
 from torchslam.lie import _series, se3
 from torchslam.objective.data import (
     PointMapData,
@@ -335,7 +335,7 @@ def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, 
         weight = torch.where(valid, data.weights, 0.0)
 
     if structured and data.information is None and jacobian_mode == "analytic":
-        s = weight * (r * r).sum(-1)
+        s = weight * sum_last(r * r)
         if data.loss is None:
             cost = 0.5 * s.sum(-1)
             w = weight
@@ -492,7 +492,7 @@ def instance_blocks(
         J = matmul(whitening, J)
     if weight is not None:
         weight = torch.where(valid, weight, torch.zeros_like(weight))
-    s = (r * r).sum(-1)
+    s = sum_last(r * r)
     if weight is not None:
         s = weight * s
     if loss is None:
@@ -662,7 +662,7 @@ def cost_at(
     poses = se3.exp(pose_tangent, form="fast")
     r, _, _ = _residuals(poses, points, data)
     rw = whiten(factor, r[..., None])
-    s = (rw * rw).sum(dim=(-1, -2))
+    s = sum_last((rw * rw)[..., 0])
     if data.loss is not None:
         s = data.loss(s)[0]
     points_cost = 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
@@ -694,7 +694,7 @@ def model_decrease(
             + torch.linalg.cross(dp_e[..., :3], X_e, dim=-1) * lin.free_pose[..., None]
             + dp_e[..., 3:] * lin.free_pose[..., None]
         )
-        quad = (lin.weight * (u * u).sum(-1)).sum(-1)
+        quad = (lin.weight * sum_last(u * u)).sum(-1)
     else:
         Jd = (lin.jacobian @ torch.cat((dp_e, dl_e), -1)[..., None])[..., 0]
         squares = Jd * Jd if lin.scale is None else lin.scale[..., None] * (Jd * Jd)
