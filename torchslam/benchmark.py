@@ -89,23 +89,37 @@ def run_case_threads(
     case: str, repeats: int, rates: dict[int, float], with_scipy: bool
 ) -> list[dict]:
     """:func:`run_case` on several torch thread counts (the keys of ``rates``, each with its
-    measured matmul rate for the FLOP ratio), interleaved: every repeat runs the case once
+    matmul rate measured at start-up), interleaved: every repeat runs the case once
     under each count in turn, so that the machine's drift hits all counts alike. One row per
     count, in the order of ``rates``; each also holds ``threads`` and ``paired_ratio``, the
     median over repeats of its time divided by the first count's time in the same repeat.
-    scipy (thread-count independent here: it runs NumPy, not torch) runs once per case."""
+    The FLOP ratio uses the matmul rate measured right before each solve under the same
+    thread count (one 1000 × 1000 product; the median over repeats), so that the machine's
+    state during the run enters both sides of the ratio (``rates`` holds the start-up rates,
+    reported as ``matmul_rate_startup``). scipy (thread-count independent here: it runs
+    NumPy, not torch) runs interleaved with the first up to 3 repeats; its median is
+    reported."""
     scene, init, loss = build(case)
     B, m, n = scene.batch_size, scene.num_poses, scene.num_points
     E = int(scene.valid.sum())
     counts = list(rates)
     times: dict[int, list[float]] = {t: [] for t in counts}
     backward: dict[int, list[float]] = {t: [] for t in counts}
+    gemm: dict[int, list[float]] = {t: [] for t in counts}
+    scipy_runs: list[dict] = []
+    with_scipy = with_scipy and case not in ("O", "TRAIN")
+    square = torch.randn(1000, 1000, dtype=torch.float64)
     result = None
     previous = torch.get_num_threads()
     try:
-        for _ in range(repeats + 1):  # the first round warms up
+        for round_ in range(repeats + 1):  # the first round warms up
+            if with_scipy and 1 <= round_ <= 3:
+                scipy_runs.append(run_scipy(scene, init))
             for threads in counts:
                 torch.set_num_threads(threads)
+                t = time.perf_counter()
+                square @ square
+                gemm[threads].append(2 * 1000**3 / (time.perf_counter() - t))
                 t = time.perf_counter()
                 if case == "TRAIN":
                     result, backward_s = training_step(scene, init)
@@ -123,13 +137,19 @@ def run_case_threads(
     errors0 = ts.metrics.evaluate(init.poses, scene.poses_gt)
     flops = schur_flops(B, m, n, E)
     total = sum(v for k, v in flops.items() if k != "sparse_minimum")
-    scipy_row = run_scipy(scene, init) if with_scipy and case not in ("O", "TRAIN") else {}
+    scipy_row = {}
+    if scipy_runs and scipy_runs[0]:
+        scipy_row = {
+            "scipy_s": statistics.median(r["scipy_s"] for r in scipy_runs),
+            "scipy_final_cost": scipy_runs[-1]["scipy_final_cost"],
+        }
     first = times[counts[0]][1:]
     rows = []
     for threads in counts:
         measured = times[threads][1:]
         median = statistics.median(measured)
         per_iteration = median / max(iterations, 1)
+        rate = statistics.median(gemm[threads][1:])
         row = {
             "case": case,
             "threads": threads,
@@ -149,8 +169,10 @@ def run_case_threads(
             "max_rotation_error_deg": errors.max_rotation_error_deg,
             "ate": errors.mean_ate,
             "flops_per_iteration": total,
-            "flop_time_s": total / rates[threads],
-            "flop_ratio": per_iteration / (total / rates[threads]),
+            "matmul_rate": rate,
+            "matmul_rate_startup": rates[threads],
+            "flop_time_s": total / rate,
+            "flop_ratio": per_iteration / (total / rate),
             "sparse_minimum_flops": flops["sparse_minimum"],
         }
         if case == "TRAIN":
