@@ -5,12 +5,13 @@ torch splits an elementwise kernel over its intra-op threads only from :data:`GR
 (``index_add``, the triangle a Cholesky zeroes, small LU factorizations, advanced indexing).
 In a solve whose per-operation tensors all stay below the grain size, a second thread can only
 add those regions' fork and join — and on a CPU shared with other work, a wait for a busy core
-in every region: case S of ``torchslam bench`` took 26 ms on 1 thread and 400 ms on 2 on a
-loaded 2-core machine. So a solve (forward, and the implicit backward) whose largest
-per-operation tensor, :func:`solve_entries`, is below :data:`GRAIN_SIZE` runs on one intra-op
-thread; a larger one on torch's setting (``torch.get_num_threads()``). The count is restored on
-exit. Like ``torch.set_num_threads`` itself this is a process setting: do not change torch's
-thread count from another Python thread while a solve runs.
+in every region: with one of two cores kept busy by another process, case S of ``torchslam
+bench`` took 102 ms on 2 threads without this policy, 28 ms with it (25 ms on 1 thread). So a
+solve (forward, and the implicit backward) whose largest per-operation tensor,
+:func:`solve_entries`, is below :data:`GRAIN_SIZE` runs on one intra-op thread; a larger one on
+torch's setting (``torch.get_num_threads()``). The count is restored on exit. Like
+``torch.set_num_threads`` itself this is a process setting: do not change torch's thread count
+from another Python thread while a solve runs.
 """
 
 from __future__ import annotations
