@@ -380,6 +380,9 @@ class Factorization:
 SPARSE_WORK_FACTOR = 30.0
 # Entries of the (B, 10·m, c) buffer of one chunk of c points in the structured dense path.
 STRUCTURED_CHUNK_ENTRIES = 1 << 24
+# Up to this many poses the structured dense path forms all 16 products P_b P_aᵀ by one GEMM
+# (1.6× the flops of the 10 it needs, but 4× fewer operations, which bound small problems).
+SMALL_POSES = 32
 
 
 @dataclass
@@ -636,10 +639,11 @@ class LinearPlan:
         Σ_j a_ij a_kj q_ab(X_j) / v_j are products P_a P_bᵀ of the four (m × n) matrices
         P_a = A·diag(s_a / √v): one batched GEMM per a of P_a by P_{a..3} (20·m²·n flops,
         no per-pair products; the (B, 4, m, c) operand is a third of a monomial-scaled one),
-        chunked over c points within STRUCTURED_CHUNK_ENTRIES. One small product with the
-        constant ±1 selection (36 × 10, exact: each entry is a signed sum of at most three
-        monomial sums) gives the 36 entries of every block, and one copy lays them out as
-        the matrix.
+        chunked over c points within STRUCTURED_CHUNK_ENTRIES; up to SMALL_POSES poses one
+        GEMM P Pᵀ of all 16 pairs instead (the same products, fewer operations). One small
+        product with the constant ±1 selection (36 × 10, exact: each entry is a signed sum of
+        at most three monomial sums) gives the 36 entries of every block, and one copy lays
+        them out as the matrix.
         """
         B, m, n = self.shape
         pose_index, point_index = self.edges.pose_index, self.edges.point_index
@@ -664,14 +668,25 @@ class LinearPlan:
                     0, ((batch * m + pose_index) * c + local).reshape(-1), values.reshape(-1)
                 )
             P = A.reshape(B, 1, m, c) * s[:, :, None, start : start + c]
+            if m <= SMALL_POSES:  # one product P Pᵀ of all 16 pairs (few operations)
+                flat = P.reshape(B, 4 * m, c)
+                if start == 0:
+                    parts = [torch.bmm(flat, flat.transpose(1, 2))]
+                else:
+                    parts[0] = parts[0].baddbmm(flat, flat.transpose(1, 2))
+                continue
             for a in range(4):  # the rows (b ≥ a, a) of C: P_{a..3} P_aᵀ
                 product = P[:, a:].reshape(B, (4 - a) * m, c)
                 if start == 0:
                     parts.append(torch.bmm(product, P[:, a].transpose(1, 2)))
                 else:
                     parts[a] = parts[a].baddbmm(product, P[:, a].transpose(1, 2))
-        C = torch.cat(parts, 1)  # (B, 10 m, m): the 10 symmetric (m × m) sums
-        blocks = _monomial_selection(C.dtype, C.device) @ C.reshape(B, 10, m * m)
+        if m <= SMALL_POSES:  # the (b, a) blocks of P Pᵀ, (B, 16, m·m), b ≥ a selected below
+            C = parts[0].reshape(B, 4, m, 4, m).transpose(2, 3).reshape(B, 16, m * m)
+            blocks = _monomial_selection(C.dtype, C.device, all_pairs=True) @ C
+        else:
+            C = torch.cat(parts, 1)  # (B, 10 m, m): the 10 symmetric (m × m) sums
+            blocks = _monomial_selection(C.dtype, C.device) @ C.reshape(B, 10, m * m)
         return blocks.reshape(B, 6, 6, m, m).permute(0, 3, 1, 4, 2).reshape(B, 6 * m, 6 * m)
 
     def _covisibility_slots(self) -> Tensor:
@@ -725,13 +740,18 @@ class LinearPlan:
 _SELECTION: dict[tuple[torch.dtype, torch.device], Tensor] = {}
 
 
-def _monomial_selection(dtype: torch.dtype, device: torch.device) -> Tensor:
+def _monomial_selection(
+    dtype: torch.dtype, device: torch.device, all_pairs: bool = False
+) -> Tensor:
     """The (36, 10) matrix of 0 and ±1 taking the monomial sums c of
     :meth:`LinearPlan._monomial_products` (order 1, x, y, z, xx, xy, xz, yy, yz, zz) to the
     36 entries (r, s) of the block −Σ c G_jᵀ G_j (:func:`.linearize.blocks_from_monomials`
     negated): top-left c_rs − δ_rs (c_xx + c_yy + c_zz), top-right −[(c_x, c_y, c_z)]×,
-    bottom-left its transpose, bottom-right −c_1 I. Cached per dtype and device."""
-    key = (dtype, device)
+    bottom-left its transpose, bottom-right −c_1 I. Cached per dtype and device.
+
+    ``all_pairs``: (36, 16) instead, for the 16 products P_b P_aᵀ in the order 4b + a, of
+    which those with b ≥ a are the 10 sums above (the others get zero columns)."""
+    key = (dtype, device, all_pairs)
     if key not in _SELECTION:
         one, x, y, z, xx, xy, xz, yy, yz, zz = range(10)
         M = torch.zeros(6, 6, 10, dtype=torch.float64)
@@ -749,7 +769,14 @@ def _monomial_selection(dtype: torch.dtype, device: torch.device) -> Tensor:
             M[3 + c, r, q] = sign
         for r in range(3):
             M[3 + r, 3 + r, one] = -1.0
-        _SELECTION[key] = M.reshape(36, 10).to(dtype=dtype, device=device)
+        M = M.reshape(36, 10)
+        if all_pairs:
+            pairs = [(a, b) for a in range(4) for b in range(a, 4)]  # the order of the 10
+            wide = torch.zeros(36, 16, dtype=torch.float64)
+            for q, (a, b) in enumerate(pairs):
+                wide[:, 4 * b + a] = M[:, q]
+            M = wide
+        _SELECTION[key] = M.to(dtype=dtype, device=device)
     return _SELECTION[key]
 
 
