@@ -315,9 +315,13 @@ def test_one_gauss_newton_iteration_is_the_seed_step_on_the_manifold(weighting):
 
 
 @pytest.mark.parametrize("entries", [10 * 12 * 3 * 7, 10 * 12 * 3])
-def test_structured_schur_chunked_over_points_equals_one_chunk(monkeypatch, entries):
-    # Chunks of 7 points and of 1 point (memory cap) give the step of the single GEMM.
+@pytest.mark.parametrize("small_poses", [plan_module.SMALL_POSES, 0])
+def test_structured_schur_chunked_over_points_equals_one_chunk(monkeypatch, entries, small_poses):
+    # Chunks of several points and of one (memory cap) give the step of the single chunk, with
+    # either GEMM layout (one P Pᵀ for few poses, four products otherwise).
     from torchslam.solver.linearize import linearize
+
+    monkeypatch.setattr(plan_module, "SMALL_POSES", small_poses)
 
     scene = torchslam.data.make_scene(12, 300, batch_size=3, seed=1, noise_std=0.01)
     generator = torch.Generator().manual_seed(0)

@@ -274,10 +274,6 @@ def _residuals(poses: Tensor, points: Tensor, data: PointMapData):
     return torch.where(data.valid[..., None], r, 0.0), T_e, X_e
 
 
-def _slots(data: PointMapData) -> tuple[Tensor, Tensor]:
-    return data.flat_pose_index.reshape(-1), data.flat_point_index.reshape(-1)
-
-
 def linearize(
     pose_tangent: Tensor,
     points: Tensor,

@@ -199,22 +199,16 @@ class DenseReduced:
         """Buffer slot of each upper block key (b·m + i)·m + k."""
         return keys
 
-    def matrix(self, upper: Tensor, dense: Tensor | None = None, mirror: bool = True) -> Tensor:
-        """The symmetric (B, 6m, 6m) matrix of the upper blocks (num_slots, 6, 6) plus
-        ``dense``, an optional symmetric (B, 6m, 6m) part that this call may overwrite (the
-        caller's temporary). ``mirror=False``: the caller knows ``upper`` holds only diagonal
-        blocks (no strictly upper block to mirror); they are then added to ``dense`` in place
-        of a pass over the whole matrix."""
+    def matrix(self, upper: Tensor, dense: Tensor | None = None) -> Tensor:
+        """The symmetric (B, 6m, 6m) matrix of the upper blocks (num_slots, 6, 6), mirrored,
+        plus ``dense``, an optional symmetric (B, 6m, 6m) part. (Without strictly upper blocks
+        :meth:`LinearPlan._factor_dense` adds the diagonal ones with :meth:`add_diagonal`.)"""
         B, m = self.batch_size, self.num_poses
         A = upper.reshape(B, m, m, 6, 6)
-        if mirror:
-            strict = ~torch.eye(m, dtype=torch.bool, device=A.device)[None, :, :, None, None]
-            lower = torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
-            full = (A + lower).transpose(2, 3).reshape(B, 6 * m, 6 * m)
-            return full if dense is None else full + dense
-        if dense is None:
-            return A.transpose(2, 3).reshape(B, 6 * m, 6 * m)
-        return DenseReduced.add_diagonal(dense, A.diagonal(0, 1, 2).permute(0, 3, 1, 2))
+        strict = ~torch.eye(m, dtype=torch.bool, device=A.device)[None, :, :, None, None]
+        lower = torch.where(strict, A, torch.zeros_like(A)).transpose(1, 2).transpose(-1, -2)
+        full = (A + lower).transpose(2, 3).reshape(B, 6 * m, 6 * m)
+        return full if dense is None else full + dense
 
     @staticmethod
     def add_diagonal(dense: Tensor, blocks: Tensor) -> Tensor:
@@ -225,15 +219,11 @@ class DenseReduced:
         return dense
 
     def factor(
-        self,
-        upper: Tensor,
-        dense: Tensor | None = None,
-        definite: bool = False,
-        mirror: bool = True,
+        self, upper: Tensor, dense: Tensor | None = None, definite: bool = False
     ) -> _DenseCholesky:
-        """Factor S = :meth:`matrix` (``upper``, ``dense`` (B, 6m, 6m), ``mirror``);
-        Cholesky reports a failure at no extra cost, so ``definite`` is not needed."""
-        return _DenseCholesky.of(self.matrix(upper, dense, mirror))
+        """Factor S = :meth:`matrix` (``upper``, ``dense`` (B, 6m, 6m)); Cholesky reports a
+        failure at no extra cost, so ``definite`` is not needed."""
+        return _DenseCholesky.of(self.matrix(upper, dense))
 
 
 @dataclass
@@ -598,7 +588,7 @@ class LinearPlan:
         without term pairs the damped pose blocks ``U`` go straight onto its diagonal (no
         (B·m·m, 6, 6) slot buffer)."""
         if self._has_term_pairs(lin):
-            return self.reduced.factor(self._upper(U, lin), points_part, mirror=True)
+            return self.reduced.factor(self._upper(U, lin), points_part)
         return _DenseCholesky.of(DenseReduced.add_diagonal(points_part, U))
 
     def _edge_slots(self) -> tuple[Tensor, Tensor]:
@@ -653,6 +643,7 @@ class LinearPlan:
         s = torch.cat((scale, lin.points * scale), -1).transpose(1, 2).contiguous()
         chunk = max(1, min(n, STRUCTURED_CHUNK_ENTRIES // max(1, B * 4 * m)))
         weight = lin.coupling_weight
+        small = m <= SMALL_POSES
         parts: list[Tensor] = []
         for start in range(0, n, chunk):
             c = min(chunk, n - start)
@@ -668,20 +659,16 @@ class LinearPlan:
                     0, ((batch * m + pose_index) * c + local).reshape(-1), values.reshape(-1)
                 )
             P = A.reshape(B, 1, m, c) * s[:, :, None, start : start + c]
-            if m <= SMALL_POSES:  # one product P Pᵀ of all 16 pairs (few operations)
-                flat = P.reshape(B, 4 * m, c)
+            if small:  # one product P Pᵀ of all 16 pairs (few operations)
+                factors = [(P.reshape(B, 4 * m, c), P.reshape(B, 4 * m, c))]
+            else:  # the rows (b ≥ a, a) of C: P_{a..3} P_aᵀ
+                factors = [(P[:, a:].reshape(B, (4 - a) * m, c), P[:, a]) for a in range(4)]
+            for k, (left, right) in enumerate(factors):
                 if start == 0:
-                    parts = [torch.bmm(flat, flat.transpose(1, 2))]
+                    parts.append(torch.bmm(left, right.transpose(1, 2)))
                 else:
-                    parts[0] = parts[0].baddbmm(flat, flat.transpose(1, 2))
-                continue
-            for a in range(4):  # the rows (b ≥ a, a) of C: P_{a..3} P_aᵀ
-                product = P[:, a:].reshape(B, (4 - a) * m, c)
-                if start == 0:
-                    parts.append(torch.bmm(product, P[:, a].transpose(1, 2)))
-                else:
-                    parts[a] = parts[a].baddbmm(product, P[:, a].transpose(1, 2))
-        if m <= SMALL_POSES:  # the (b, a) blocks of P Pᵀ, (B, 16, m·m), b ≥ a selected below
+                    parts[k] = parts[k].baddbmm(left, right.transpose(1, 2))
+        if small:  # the (b, a) blocks of P Pᵀ, (B, 16, m·m), b ≥ a selected below
             C = parts[0].reshape(B, 4, m, 4, m).transpose(2, 3).reshape(B, 16, m * m)
             blocks = _monomial_selection(C.dtype, C.device, all_pairs=True) @ C
         else:
