@@ -39,6 +39,28 @@ TIGHT = {
 
 ALL = slice(None)
 
+# Gradient tests: solves run to round-off (Levenberg-Marquardt then stops at ‖∇F‖ ≈ 1e-10,
+# since its cost-based acceptance cannot verify smaller steps), and Gauss-Newton polishing of
+# a converged solve for finite differences of the whole solve.
+CONVERGED = torchslam.SolverConfig(function_tolerance=1e-14, gradient_tolerance=1e-14)
+POLISH = torchslam.SolverConfig(
+    algorithm="gauss_newton",
+    max_iterations=12,
+    function_tolerance=0.0,
+    gradient_tolerance=0.0,
+    parameter_tolerance=0.0,
+)
+
+
+def downstream_objective(pose_tangent: Tensor, points: Tensor) -> Tensor:
+    """A downstream loss of a solution, per problem (B,): nonlinear in every entry."""
+    coefficients = torch.linspace(-1.0, 1.0, 6, dtype=pose_tangent.dtype)
+    return (
+        (pose_tangent * coefficients).sum((-1, -2))
+        + (points**2).sum((-1, -2))
+        + (pose_tangent**2).sum((-1, -2))
+    )
+
 
 def drifted(
     num_poses: int = 6,

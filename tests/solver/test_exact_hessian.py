@@ -25,19 +25,14 @@ from torchslam.solver.differentiable import solve_differentiable
 from torchslam.solver.hessian import dense_hessian, exact_hessian
 from torchslam.solver.plan import LinearPlan
 
+from . import CONVERGED, POLISH, downstream_objective
+
 F64 = torch.float64
 # The relative-pose term's kernel (Cauchy: ρ'' ≠ 0 everywhere).
 TERM_LOSS = CauchyLoss(0.05)
-# As tests/solver/test_gradients.py: LM to round-off, then Gauss-Newton polishing for the
-# finite differences (no cost comparisons, so every perturbed solve lands on its minimum).
-CONVERGED = SolverConfig(function_tolerance=1e-14, gradient_tolerance=1e-14)
-POLISH = SolverConfig(
-    algorithm="gauss_newton",
-    max_iterations=12,
-    function_tolerance=0.0,
-    gradient_tolerance=0.0,
-    parameter_tolerance=0.0,
-)
+# CONVERGED and POLISH (tests.solver), as in test_gradients.py: LM to round-off, then
+# Gauss-Newton polishing for the finite differences (no cost comparisons, so every perturbed
+# solve lands on its minimum).
 
 
 def _problem(
@@ -233,16 +228,6 @@ def _force_conjugate_gradients(monkeypatch) -> None:
     monkeypatch.setattr(differentiable, "_exact_solve", never)
 
 
-def _objective(pose_tangent: Tensor, points: Tensor) -> Tensor:
-    """A downstream loss of the solution, per problem (B,): nonlinear in every entry."""
-    coefficients = torch.linspace(-1.0, 1.0, 6, dtype=pose_tangent.dtype)
-    return (
-        (pose_tangent * coefficients).sum((-1, -2))
-        + (points**2).sum((-1, -2))
-        + (pose_tangent**2).sum((-1, -2))
-    )
-
-
 def _implicit_gradients(information: bool, **options) -> tuple[Tensor, ...]:
     problem = _problem(HuberLoss(0.05), information, point_term=False)
     observations = problem.data.observations.detach().clone().requires_grad_(True)
@@ -251,7 +236,7 @@ def _implicit_gradients(information: bool, **options) -> tuple[Tensor, ...]:
     data = dataclasses.replace(problem.data, observations=observations, **{weighting: weights})
     result = solve_differentiable(problem.pose_tangent, problem.points, data, CONVERGED, **options)
     assert all(result.converged)
-    loss = _objective(result.pose_tangent, result.points).sum()
+    loss = downstream_objective(result.pose_tangent, result.points).sum()
     return torch.autograd.grad(loss, (observations, weights))
 
 
@@ -278,14 +263,14 @@ def test_direct_backward_equals_central_differences():
     weights = base_w.clone().requires_grad_(True)
     data = dataclasses.replace(problem.data, observations=observations, weights=weights)
     result = solve_differentiable(problem.pose_tangent, problem.points, data, CONVERGED)
-    loss = _objective(result.pose_tangent, result.points).sum()
+    loss = downstream_objective(result.pose_tangent, result.points).sum()
     grad_obs, grad_w = torch.autograd.grad(loss, (observations, weights))
 
     def objective(obs: Tensor, w: Tensor) -> float:
         d = dataclasses.replace(problem.data, observations=obs, weights=w)
         r = solve_tensors(problem.pose_tangent, problem.points, d, CONVERGED)
         r = solve_tensors(r.pose_tangent, r.points, d, POLISH)
-        return float(_objective(r.pose_tangent, r.points).sum())
+        return float(downstream_objective(r.pose_tangent, r.points).sum())
 
     # h = 1e-3 (4-point stencil, truncation ~h⁴, solution noise ~1e-12/h): gradients to ~1e-7.
     h = 1e-3
@@ -321,7 +306,7 @@ def test_fallback_is_per_problem(monkeypatch):
         observations = d.observations.detach().clone().requires_grad_(True)
         d = dataclasses.replace(d, observations=observations)
         result = solve_differentiable(xi, X, d, config, on_unconverged="implicit")
-        loss = _objective(result.pose_tangent, result.points).sum()
+        loss = downstream_objective(result.pose_tangent, result.points).sum()
         return torch.autograd.grad(loss, observations)[0]
 
     batched = gradient(data, xi0, X0)

@@ -23,6 +23,8 @@ from torchslam.lie import se3, so3
 from torchslam.solver.differentiable import solve_differentiable
 from torchslam.solver.result import Status
 
+from . import downstream_objective
+
 F64 = torch.float64
 # Converged solves run to round-off (as test_gradients.CONVERGED).
 TIGHT = {"function_tolerance": 1e-14, "gradient_tolerance": 1e-14}
@@ -70,16 +72,6 @@ def _mixed_start(scene, weights: Tensor) -> tuple[Tensor, Tensor]:
     return xi0, X0
 
 
-def _objective(pose_tangent: Tensor, points: Tensor) -> Tensor:
-    """A downstream loss of the solution, per problem (B,): nonlinear in every entry."""
-    coefficients = torch.linspace(-1.0, 1.0, 6, dtype=pose_tangent.dtype)
-    return (
-        (pose_tangent * coefficients).sum((-1, -2))
-        + (points**2).sum((-1, -2))
-        + (pose_tangent**2).sum((-1, -2))
-    )
-
-
 def _central_differences(
     scene, inputs, b: int, entries, h: float, stencil: int, config, polish: bool = False
 ):
@@ -118,7 +110,9 @@ def _central_differences(
             parameter_tolerance=0.0,
         )
         result = solve_tensors(result.pose_tangent, result.points, problem.data, gauss_newton)
-    values = _objective(result.pose_tangent, result.points).reshape(len(entries), len(steps))
+    values = downstream_objective(result.pose_tangent, result.points).reshape(
+        len(entries), len(steps)
+    )
     if stencil == 2:
         return (values[:, 1] - values[:, 0]) / (2 * h)
     return (8 * (values[:, 2] - values[:, 1]) - (values[:, 3] - values[:, 0])) / (12 * h)
@@ -129,7 +123,7 @@ def _analytic(scene, inputs, config: SolverConfig, **options) -> tuple[Tensor, .
     observations, weights, xi0, X0 = leaves
     p = _problem(scene, observations, weights, se3.exp(xi0.detach()), X0.detach())
     result = solve_differentiable(xi0, X0, p.data, config, **options)
-    loss = _objective(result.pose_tangent, result.points).sum()
+    loss = downstream_objective(result.pose_tangent, result.points).sum()
     return torch.autograd.grad(loss, leaves)
 
 
@@ -227,7 +221,7 @@ def test_implicit_backward_refuses_second_derivatives():
         result = solve_differentiable(xi0, X0, data, config)
         if use_cost:
             return result.final_cost.sum()
-        return _objective(result.pose_tangent, result.points).sum()
+        return downstream_objective(result.pose_tangent, result.points).sum()
 
     message = r"solve_differentiable: backward='implicit' provides first derivatives only.*"
     message += r"backward='unrolled'"
@@ -301,7 +295,7 @@ def test_unrolled_hessian_vector_product_with_an_identity_gauge_pose():
         data = dataclasses.replace(p.data, weights=w)
         result = solve_differentiable(xi, p.points.detach(), data, config, backward="unrolled")
         assert int(result.iterations.min()) == 3
-        return _objective(result.pose_tangent, result.points).sum()
+        return downstream_objective(result.pose_tangent, result.points).sum()
 
     def gradient(w: Tensor, xi: Tensor) -> tuple[Tensor, Tensor]:
         w, xi = w.detach().requires_grad_(True), xi.detach().requires_grad_(True)
@@ -344,7 +338,7 @@ def test_data_reused_after_backward_is_refused_with_the_pattern_that_works(backw
     def step(data) -> Tensor:
         result = solve_differentiable(problem.pose_tangent, problem.points, data, backward=backward)
         logits.grad = None
-        _objective(result.pose_tangent, result.points).sum().backward()
+        downstream_objective(result.pose_tangent, result.points).sum().backward()
         return logits.grad.clone()
 
     first = step(problem.data)
@@ -359,7 +353,7 @@ def test_data_reused_after_backward_is_refused_with_the_pattern_that_works(backw
     data = dataclasses.replace(problem.data, weights=torch.sigmoid(logits))
     for _ in range(2):
         result = solve_differentiable(problem.pose_tangent, problem.points, data, backward=backward)
-        _objective(result.pose_tangent, result.points).sum().backward(retain_graph=True)
+        downstream_objective(result.pose_tangent, result.points).sum().backward(retain_graph=True)
     # The initial guess is checked too.
     offset = torch.zeros((), dtype=F64, requires_grad=True)
     X0 = problem.points.detach() * torch.exp(offset)

@@ -13,19 +13,12 @@ from torchslam.initialization import initialize_scene
 from torchslam.solver.differentiable import ImplicitConfig, solve_differentiable
 from torchslam.solver.hessian import dense_hessian, exact_hessian
 
+from . import CONVERGED, POLISH
+
 # Solves run to round-off: Levenberg-Marquardt then stops at ‖∇F‖ ≈ 1e-10 (its cost-based
 # acceptance cannot verify smaller steps), so solutions repeat to ~1e-10 under perturbations of
 # the data and central differences need a step h ≈ 1e-3 (noise ~1e-10/h, truncation ~h⁴ for
-# the 4-point stencil) to resolve gradients to ~1e-7.
-CONVERGED = SolverConfig(function_tolerance=1e-14, gradient_tolerance=1e-14)
-# Gauss-Newton polishing of a converged solve for finite differences (see its use).
-POLISH = SolverConfig(
-    algorithm="gauss_newton",
-    max_iterations=12,
-    function_tolerance=0.0,
-    gradient_tolerance=0.0,
-    parameter_tolerance=0.0,
-)
+# the 4-point stencil) to resolve gradients to ~1e-7 (CONVERGED and POLISH in tests.solver).
 # Huber at 5σ of the synthetic noise (0.01 m): inliers stay quadratic, outliers go linear, so
 # the Gauss-Newton fixed-point iteration contracts fast and the unrolled derivative converges.
 HUBER_SCALE = 0.05
