@@ -103,11 +103,15 @@ def jacrev_blocks(
     """
     fn = "jacobians.jacrev_blocks"
     _check_observation_args(fn, pose_tangent, points, observations)
-    T = se3.exp(pose_tangent, form="fast")
-    J_xi, J_point = manifold.right_jacobian_jacrev(
+    return _jacrev_blocks_at(se3.exp(pose_tangent, form="fast"), points, observations)
+
+
+def _jacrev_blocks_at(T: Tensor, points: Tensor, observations: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`jacrev_blocks` at pose matrices T (..., 4, 4) instead of twists (the solver's
+    iterate), unchecked."""
+    return manifold.right_jacobian_jacrev(
         _residual_at, (T,), (points,), (observations,), batch_dims=points.dim() - 1
     )
-    return J_xi, J_point
 
 
 def _residual_at(T: Tensor, point: Tensor, observation: Tensor) -> Tensor:

@@ -354,7 +354,9 @@ def _run_truncated(
     factor = whitening_factors(data)
     lin = linearize(xi, X, data, factor, config.jacobian, config.linear_solver == "schur")
     state = loop.State(
-        xi=xi,
+        start=xi,
+        poses=lin.poses,
+        moved=torch.zeros(xi.shape[:2], dtype=torch.bool, device=xi.device),
         X=X,
         lam=pick("lam"),
         nu=pick("nu"),

@@ -48,13 +48,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchslam import losses
+from torchslam import jacobians, losses
 from torchslam._batched import matmul, sum_last
 from torchslam.lie import _series, se3
 from torchslam.objective.data import (
     PointMapData,
     gather_points,
-    jacobian_blocks,
     per_observation,
 )
 from torchslam.objective.terms import (
@@ -275,7 +274,7 @@ def _residuals(poses: Tensor, points: Tensor, data: PointMapData):
 
 
 def linearize(
-    pose_tangent: Tensor,
+    pose_tangent: Tensor | None,
     points: Tensor,
     data: PointMapData,
     factor: Tensor | None,
@@ -284,7 +283,8 @@ def linearize(
     poses: Tensor | None = None,
 ) -> BlockLinearization | StructuredLinearization:
     """Normal-equation blocks at (pose_tangent (B, m, 6), points (B, n, 3)); ``poses`` are the
-    matrices Exp(ξ) (B, m, 4, 4) when the caller has them (the retraction's), else computed.
+    matrices Exp(ξ) (B, m, 4, 4) when the caller has them (the loop's iterate; then
+    ``pose_tangent`` is not read and may be None), else computed.
 
     The structured form is used when ``structured`` and the problem allows it (scalar weights,
     analytic Jacobians, no curvature-corrected robust observation, no term that touches a
@@ -294,7 +294,7 @@ def linearize(
     structured = structured and not point_terms(data)
     if poses is None:
         poses = se3.exp(pose_tangent, form="fast")
-    lin = _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured)
+    lin = _linearize_points(poses, points, data, factor, jacobian_mode, structured)
     lin.poses = poses
     if not data.terms:
         return lin
@@ -316,7 +316,7 @@ def linearize(
     )
 
 
-def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, structured):
+def _linearize_points(poses, points, data, factor, jacobian_mode, structured):
     empty = data.pose_index.shape[1] == 0
     if empty and structured and data.information is None and jacobian_mode == "analytic":
         return _no_observations(poses, points, data)
@@ -349,7 +349,7 @@ def _linearize_points(pose_tangent, poses, points, data, factor, jacobian_mode, 
     if jacobian_mode == "analytic":
         J_xi, J_X = point_observation_jacobians(T_e, X_e)
     else:
-        J_xi, J_X = jacobian_blocks(pose_tangent, points, data, jacobian_mode)
+        J_xi, J_X = jacobians._jacrev_blocks_at(T_e, X_e, data.masked_observations())
     return _blocks(r, J_xi, J_X, factor, free_pose, free_point, data)
 
 

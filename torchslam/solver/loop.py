@@ -2,8 +2,11 @@
 
 One straight path per iteration: linearize (:mod:`.linearize`) → factorize the damped system
 with the solve's plan (:class:`.plan.LinearPlan`, built once) and solve for the step → retract
-(:meth:`torchslam.manifold.SE3Tangent.plus` for the poses, X ← X + δX for the points) →
-accept or reject → stopping rules (:func:`update_status`). Each of the B problems has its own
+(:func:`retract`: T ← T·Exp(δ) for the poses, X ← X + δX for the points) → accept or reject →
+stopping rules (:func:`update_status`). The loop iterates on the pose matrices T = Exp(ξ) and
+takes ξ = Log(T) once, when it is read (:attr:`State.xi`): the same twists, bit for bit, as
+Log(Exp(ξ)·Exp(δ)) after every step (:meth:`torchslam.manifold.SE3Tangent.retract`), without a
+Log per iteration. Each of the B problems has its own
 damping λ, its own accept/reject decisions and its own convergence; a problem that stopped
 keeps its values while the others go on. Every decision is taken on detached values, so the
 same loop runs under ``torch.no_grad`` (:func:`torchslam.solve_tensors`) or with autograd
@@ -19,6 +22,7 @@ Nielsen's update: accepted (ϱ > 0): λ ← λ·max(⅓, 1 − (2ϱ − 1)³), �
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -27,9 +31,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchslam import manifold
+from torchslam._batched import matmul
 from torchslam._threads import threads_for
-from torchslam.lie import _series
+from torchslam.lie import _series, se3
 from torchslam.objective.data import PointMapData
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import linearize, model_decrease, whitening_factors
@@ -38,29 +42,41 @@ from torchslam.solver.result import IterationInfo, SolveResult, Status
 
 __all__ = ["State", "retract", "run", "update_status"]
 
-# The manifold of the pose parameters: ξ ⊞ δ = Log(Exp(ξ)·Exp(δ)).
-_POSES = manifold.SE3Tangent()
 
+def retract(poses: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor]:
+    """x ⊞ δ on the iterate: T ← T·Exp(δp) (seed eq. L1, right perturbation; poses (B, m, 4, 4),
+    dp (B, m, 6)), X ← X + δl (points (B, n, 3)). Returns (T, X).
 
-def retract(
-    pose_tangent: Tensor, points: Tensor, dp: Tensor, dl: Tensor, poses: Tensor | None = None
-) -> tuple[Tensor, Tensor, Tensor]:
-    """x ⊞ δ: ξ ← Log(Exp(ξ)·Exp(δp)) (seed eq. L1/L2, :class:`torchslam.manifold.SE3Tangent`),
-    X ← X + δl; ``poses``: Exp(ξ) when the caller has it (the linearization's). Returns
-    (ξ, X, T) with T = Exp(ξ)·Exp(δp), the matrices the next linearization is taken at.
-
-    A pose whose step is exactly zero (a fixed pose) keeps its ξ and T bit for bit: the
-    Log∘Exp round trip would move it by a few ulps.
+    A pose whose step is exactly zero (a fixed pose) keeps T bit for bit; its twist is then
+    the one the solve started from (:attr:`State.xi`). The θ-power form of Exp
+    (``se3.exp(..., form="fast")``, the same bits for |δω| ≤ 2²⁰).
     """
-    xi, T = _POSES.retract(pose_tangent, dp, exp_x=poses, with_exp=True)
-    return xi, points + dl, T
+    step = se3._exp(dp)
+    keep = (dp == 0).all(dim=-1)[..., None, None]
+    return torch.where(keep, poses, matmul(poses, step)), points + dl
+
+
+def _norm_bound(start_square: Tensor, poses: Tensor, moved: Tensor, X: Tensor) -> Tensor:
+    """An upper bound of ‖(ξ, X)‖ per problem (B,) without the Log: a pose that moved has
+    ‖ξ‖² = θ² + ‖J_l(ω)⁻¹ t‖² ≤ π² + (π/2)²‖t‖² (θ ≤ π, and ‖J_l⁻¹‖ = (θ/2)/sin(θ/2) ≤ π/2),
+    bounded here by 10 + 2.5‖t‖² (a margin over round-off); one that did not keeps its ‖ξ₀‖²
+    (``start_square`` (B, m))."""
+    t_square = poses[..., :3, 3].square().sum(-1)
+    per_pose = torch.where(moved, 10.0 + 2.5 * t_square, start_square)
+    return torch.sqrt(per_pose.sum(-1) + X.square().flatten(1).sum(-1))
 
 
 @dataclass
 class State:
-    """The iterate of B problems and the loop's bookkeeping."""
+    """The iterate of B problems and the loop's bookkeeping.
 
-    xi: Tensor
+    The poses are held as matrices T (``poses``, (B, m, 4, 4)); :attr:`xi` is their twist
+    ξ = Log(T), computed when read, except on the poses no step ever moved (``moved`` False),
+    which keep the twist the loop started from (``start``) bit for bit."""
+
+    start: Tensor
+    poses: Tensor
+    moved: Tensor
     X: Tensor
     lam: Tensor
     nu: Tensor
@@ -76,6 +92,13 @@ class State:
     # Wall-clock seconds spent in linearize and in the linear solves so far.
     linearize_seconds: float = 0.0
     linear_solve_seconds: float = 0.0
+
+    @functools.cached_property
+    def xi(self) -> Tensor:
+        """The twists ξ (B, m, 6) of the iterate."""
+        if not bool(self.moved.any()):
+            return self.start
+        return torch.where(self.moved[..., None], se3._log(self.poses), self.start)
 
 
 def _finite(x: Tensor) -> Tensor:
@@ -112,7 +135,9 @@ def initial_state(
     )
     status = torch.where(_finite(lin.cost.detach()), status, int(Status.NON_FINITE))
     return State(
-        xi=xi,
+        start=xi,
+        poses=lin.poses,
+        moved=torch.zeros(xi.shape[:2], dtype=torch.bool, device=xi.device),
         X=X,
         lam=lam,
         nu=torch.full_like(lam, 2.0),
@@ -224,8 +249,10 @@ def iterate(
         plan = LinearPlan.build(data, config)
     running = int(Status.RUNNING)
     s = state
-    xi, X, lam, nu, status, lin = s.xi, s.X, s.lam, s.nu, s.status, s.lin
+    T, moved, X, lam, nu, status, lin = s.poses, s.moved, s.X, s.lam, s.nu, s.status, s.lin
     iterations, cost, accepted_total = s.iterations, s.cost, s.accepted
+    # ‖ξ₀‖² per pose, for the poses that have not moved (:func:`_norm_bound`).
+    start_square = s.start.detach().square().sum(-1)
     linearize_seconds, solve_seconds = s.linearize_seconds, s.linear_solve_seconds
     while True:
         active = (status == running) & (iterations < config.max_iterations)
@@ -243,13 +270,21 @@ def iterate(
             ok = factorization.ok
         tock = time.perf_counter()
         solve_seconds += tock - tick
-        xi_new, X_new, T_new = retract(xi, X, dp, dl, lin.poses)
-        lin_new = linearize(xi_new, X_new, data, factor, config.jacobian, structured, T_new)
+        T_new, X_new = retract(T, X, dp, dl)
+        moves = (dp != 0).any(-1)
+        lin_new = linearize(None, X_new, data, factor, config.jacobian, structured, T_new)
         linearize_seconds += time.perf_counter() - tock
         with torch.no_grad():
             # The decisions: constants of the graph.
             step_norm = torch.sqrt(dp.square().flatten(1).sum(-1) + dl.square().flatten(1).sum(-1))
-            x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
+            # ‖x‖ of the parameter rule needs ξ = Log(T) only where a step is small enough for
+            # the rule to hold with the upper bound of ‖x‖ (in a solve's last iterations if
+            # ever): elsewhere the bound decides the same.
+            x_norm = _norm_bound(start_square, T.detach(), moved, X.detach())
+            tolerance = config.parameter_tolerance
+            if bool((step_norm <= tolerance * (x_norm + tolerance)).any()):
+                xi = torch.where(moved[..., None], se3._log(T.detach()), s.start.detach())
+                x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
             old_cost, new_cost = cost.detach(), lin_new.cost.detach()
             finite = _finite(new_cost) & _finite(step_norm)
             predicted = None
@@ -269,7 +304,8 @@ def iterate(
                 lam = torch.where(active & ~accepted, lam * 0.5, lam)
         accepted_total = accepted_total + accepted
         take = accepted[:, None, None]
-        xi = torch.where(take, xi_new, xi)
+        T = torch.where(take[..., None], T_new, T)
+        moved = moved | (accepted[:, None] & moves)
         X = torch.where(take, X_new, X)
         cost = torch.where(accepted, lin_new.cost, cost)
         # Whole-batch outcomes (every solve of one problem) keep one of the two as it is.
@@ -279,7 +315,7 @@ def iterate(
         elif taken > 0:
             lin = _select(accepted, lin_new, lin)
         if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
-            lin = linearize(xi, X, data, factor, config.jacobian, structured)
+            lin = linearize(None, X, data, factor, config.jacobian, structured, T)
         with torch.no_grad():
             status = update_status(
                 status,
@@ -297,7 +333,9 @@ def iterate(
                 cost=cost.detach(),
             )
         s = State(
-            xi,
+            s.start,
+            T,
+            moved,
             X,
             lam,
             nu,

@@ -282,14 +282,14 @@ class _BlockElimination:
     def couple(self, y: Tensor) -> Tensor:
         """Σ_e W_e y_j(e) per pose, y (B, n, 3) → (B, m, 6)."""
         B, m, _ = self.shape
-        y_e = y.reshape(-1, 3)[self.point_slot]
+        y_e = y.reshape(-1, 3).index_select(0, self.point_slot)
         Wy = (self.W @ y_e[..., None])[..., 0]
         return segment_sum(self.pose_slot, B * m, Wy).reshape(B, m, 6)
 
     def couple_transposed(self, dp: Tensor) -> Tensor:
         """Σ_e W_eᵀ δp_i(e) per point, dp (B, m, 6) → (B, n, 3)."""
         B, _, n = self.shape
-        dp_e = dp.reshape(-1, 6)[self.pose_slot]
+        dp_e = dp.reshape(-1, 6).index_select(0, self.pose_slot)
         Wt_dp = (self.W.transpose(-1, -2) @ dp_e[..., None])[..., 0]
         return segment_sum(self.point_slot, B * n, Wt_dp).reshape(B, n, 3)
 
@@ -316,13 +316,13 @@ class _StructuredElimination:
 
     def couple(self, y: Tensor) -> Tensor:
         B, m, _ = self.shape
-        y_e = self.weight[:, None] * y.reshape(-1, 3)[self.point_slot]
+        y_e = self.weight[:, None] * y.reshape(-1, 3).index_select(0, self.point_slot)
         Gty = torch.cat((torch.linalg.cross(self.X_e, y_e, dim=-1), y_e), -1)
         return segment_sum(self.pose_slot, B * m, Gty).reshape(B, m, 6)
 
     def couple_transposed(self, dp: Tensor) -> Tensor:
         B, _, n = self.shape
-        dp_e = dp.reshape(-1, 6)[self.pose_slot]
+        dp_e = dp.reshape(-1, 6).index_select(0, self.pose_slot)
         G_dp = torch.linalg.cross(dp_e[:, :3], self.X_e, dim=-1) + dp_e[:, 3:]
         w_G_dp = self.weight[:, None] * G_dp
         return segment_sum(self.point_slot, B * n, w_G_dp).reshape(B, n, 3)
