@@ -18,6 +18,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchslam import _inference
+
 # Taylor branch for θ² below this value (θ < 0.5); same for float32 and float64 since the
 # series is accurate to < 1e-20 there.
 SMALL_ANGLE_SQUARED = {torch.float32: 0.25, torch.float64: 0.25}
@@ -63,7 +65,8 @@ def constant(key: object, values: object, dtype: torch.dtype, device: torch.devi
     full_key = (key, dtype, device)
     table = _TABLES.get(full_key)
     if table is None:
-        table = torch.tensor(values, dtype=dtype, device=device)
+        with _inference.outside():  # a normal tensor, usable after an inference-mode solve
+            table = torch.tensor(values, dtype=dtype, device=device)
         # Cache plain tensors only (a few tables × dtypes × devices): not an inference tensor
         # (inference_mode) nor a fake one (FakeTensorMode), which later calls could not use.
         if type(table) is torch.Tensor and not table.is_inference():
@@ -81,7 +84,8 @@ def _rows(key: tuple, series: tuple, dtype: torch.dtype, device: torch.device) -
     rows = _ROWS.get(full_key)
     if rows is None:
         table = constant(key, list(zip(*series, strict=True)), dtype, device)
-        rows = table.unbind(0)
+        with _inference.outside():
+            rows = table.unbind(0)
         if _TABLES.get(full_key) is table:  # cached only where the table is
             _ROWS[full_key] = rows
     return rows

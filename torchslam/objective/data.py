@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchslam import _checks, jacobians, losses
+from torchslam import _checks, _inference, jacobians, losses
 from torchslam.lie import se3
 from torchslam.objective.terms import Term, terms_cost
 from torchslam.objective.whitening import whiten, whitening
@@ -144,15 +144,17 @@ class PointMapData:
     def flat_pose_index(self) -> Tensor:
         """b·m + pose_index, long (B, E): rows of (B·m, …) tensors, for ``index_select``."""
         B = self.pose_index.shape[0]
-        batch = torch.arange(B, device=self.pose_index.device)[:, None]
-        return batch * self.num_poses + self.pose_index
+        with _inference.outside():  # cached: a normal tensor even when made in a solve
+            batch = torch.arange(B, device=self.pose_index.device)[:, None]
+            return batch * self.num_poses + self.pose_index
 
     @functools.cached_property
     def flat_point_index(self) -> Tensor:
         """b·n + point_index, long (B, E): rows of (B·n, …) tensors, for ``index_select``."""
         B = self.point_index.shape[0]
-        batch = torch.arange(B, device=self.point_index.device)[:, None]
-        return batch * self.num_points + self.point_index
+        with _inference.outside():  # cached: a normal tensor even when made in a solve
+            batch = torch.arange(B, device=self.point_index.device)[:, None]
+            return batch * self.num_points + self.point_index
 
     @property
     def num_points(self) -> int:

@@ -62,7 +62,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from torchslam import _checks, losses
+from torchslam import _checks, _inference, losses
 from torchslam._batched import matmul
 from torchslam.lie import se3, so3
 from torchslam.manifold import right_jacobian_jacrev
@@ -909,6 +909,8 @@ class PointObservationTerm(Term):
 def _cached(term: Term, name: str, tensors: tuple[Tensor, ...], compute):
     """``compute()`` once per term while ``tensors`` are the same objects, unedited in place
     (their versions), kept in the term's ``__dict__`` under ``name``; not under torch.func."""
+    if not all(_inference.cacheable(t) for t in tensors):  # no version counter to check
+        return compute()
     versions = tuple(t._version for t in tensors)
     cached = term.__dict__.get(name)
     if (
@@ -917,7 +919,8 @@ def _cached(term: Term, name: str, tensors: tuple[Tensor, ...], compute):
         and cached[1] == versions
     ):
         return cached[2]
-    value = compute()
+    with _inference.outside():  # kept on the term: normal tensors, even made in a solve
+        value = compute()
     if not any(torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors):
         term.__dict__[name] = (tensors, versions, value)
     return value
@@ -969,6 +972,8 @@ def term_whitening(term: Term) -> Tensor | None:
     differentiable = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in tensors
     )
+    if not all(t is None or _inference.cacheable(t) for t in tensors):
+        return whitening(*masked_weighting(term))
     versions = tuple(t._version if t is not None else None for t in tensors)
     cached = getattr(term, "_whitening_cache", None)
     if (
@@ -978,7 +983,8 @@ def term_whitening(term: Term) -> Tensor | None:
         and cached[1] == versions
     ):
         return cached[2]
-    factor = whitening(*masked_weighting(term))
+    with _inference.outside():  # kept on the term: a normal tensor, even made in a solve
+        factor = whitening(*masked_weighting(term))
     if not differentiable and not torch._C._functorch.is_functorch_wrapped_tensor(term.valid):
         # The cache holds the tensors themselves: an identity test cannot match a new one.
         term._whitening_cache = (tensors, versions, factor)

@@ -43,17 +43,18 @@ from torchslam.solver.result import IterationInfo, SolveResult, Status
 __all__ = ["State", "retract", "run", "update_status"]
 
 
-def retract(poses: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor]:
+def retract(poses: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """x ⊞ δ on the iterate: T ← T·Exp(δp) (seed eq. L1, right perturbation; poses (B, m, 4, 4),
-    dp (B, m, 6)), X ← X + δl (points (B, n, 3)). Returns (T, X).
+    dp (B, m, 6)), X ← X + δl (points (B, n, 3)). Returns (T, X, moves), ``moves`` (B, m) the
+    poses whose step is not zero.
 
     A pose whose step is exactly zero (a fixed pose) keeps T bit for bit; its twist is then
     the one the solve started from (:attr:`State.xi`). The θ-power form of Exp
     (``se3.exp(..., form="fast")``, the same bits for |δω| ≤ 2²⁰).
     """
-    step = se3._exp(dp)
-    keep = (dp == 0).all(dim=-1)[..., None, None]
-    return torch.where(keep, poses, matmul(poses, step)), points + dl
+    moves = (dp != 0).any(dim=-1)
+    moved = torch.where(moves[..., None, None], matmul(poses, se3._exp(dp)), poses)
+    return moved, points + dl, moves
 
 
 def _norm_bound(start_square: Tensor, poses: Tensor, moved: Tensor, X: Tensor) -> Tensor:
@@ -270,8 +271,7 @@ def iterate(
             ok = factorization.ok
         tock = time.perf_counter()
         solve_seconds += tock - tick
-        T_new, X_new = retract(T, X, dp, dl)
-        moves = (dp != 0).any(-1)
+        T_new, X_new, moves = retract(T, X, dp, dl)
         lin_new = linearize(None, X_new, data, factor, config.jacobian, structured, T_new)
         linearize_seconds += time.perf_counter() - tock
         with torch.no_grad():
@@ -303,16 +303,17 @@ def iterate(
                 accepted = active & finite & (new_cost < old_cost)
                 lam = torch.where(active & ~accepted, lam * 0.5, lam)
         accepted_total = accepted_total + accepted
-        take = accepted[:, None, None]
-        T = torch.where(take[..., None], T_new, T)
-        moved = moved | (accepted[:, None] & moves)
-        X = torch.where(take, X_new, X)
-        cost = torch.where(accepted, lin_new.cost, cost)
         # Whole-batch outcomes (every solve of one problem) keep one of the two as it is.
         taken = int(accepted.sum())
         if taken == accepted.numel():
-            lin = lin_new
+            T, X, cost, lin = T_new, X_new, lin_new.cost, lin_new
+            moved = moved | moves
         elif taken > 0:
+            take = accepted[:, None, None]
+            T = torch.where(take[..., None], T_new, T)
+            X = torch.where(take, X_new, X)
+            cost = torch.where(accepted, lin_new.cost, cost)
+            moved = moved | (accepted[:, None] & moves)
             lin = _select(accepted, lin_new, lin)
         if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
             lin = linearize(None, X, data, factor, config.jacobian, structured, T)

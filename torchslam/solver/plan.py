@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam import _inference
 from torchslam.lie import _series
 from torchslam.lie.so3 import hat
 from torchslam.objective.data import PointMapData
@@ -740,31 +741,37 @@ def _monomial_selection(
     which those with b ≥ a are the 10 sums above (the others get zero columns)."""
     key = (dtype, device, all_pairs)
     if key not in _SELECTION:
-        one, x, y, z, xx, xy, xz, yy, yz, zz = range(10)
-        M = torch.zeros(6, 6, 10, dtype=torch.float64)
-        second = ((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))
-        for r in range(3):
-            for c in range(3):
-                M[r, c, second[r][c]] += 1.0
-                if r == c:
-                    M[r, c, [xx, yy, zz]] -= 1.0
-        # top-right −[c]× with c = (c_x, c_y, c_z); bottom-left its transpose
-        cross = {(0, 1): (z, 1.0), (0, 2): (y, -1.0), (1, 0): (z, -1.0), (1, 2): (x, 1.0)}
-        cross |= {(2, 0): (y, 1.0), (2, 1): (x, -1.0)}
-        for (r, c), (q, sign) in cross.items():
-            M[r, 3 + c, q] = sign
-            M[3 + c, r, q] = sign
-        for r in range(3):
-            M[3 + r, 3 + r, one] = -1.0
-        M = M.reshape(36, 10)
-        if all_pairs:
-            pairs = [(a, b) for a in range(4) for b in range(a, 4)]  # the order of the 10
-            wide = torch.zeros(36, 16, dtype=torch.float64)
-            for q, (a, b) in enumerate(pairs):
-                wide[:, 4 * b + a] = M[:, q]
-            M = wide
-        _SELECTION[key] = M.to(dtype=dtype, device=device)
+        with _inference.outside():  # kept: a normal tensor, even made in a solve
+            _SELECTION[key] = _selection_matrix(all_pairs).to(dtype=dtype, device=device)
     return _SELECTION[key]
+
+
+def _selection_matrix(all_pairs: bool) -> Tensor:
+    """:func:`_monomial_selection` in float64 on the CPU."""
+    one, x, y, z, xx, xy, xz, yy, yz, zz = range(10)
+    M = torch.zeros(6, 6, 10, dtype=torch.float64)
+    second = ((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))
+    for r in range(3):
+        for c in range(3):
+            M[r, c, second[r][c]] += 1.0
+            if r == c:
+                M[r, c, [xx, yy, zz]] -= 1.0
+    # top-right −[c]× with c = (c_x, c_y, c_z); bottom-left its transpose
+    cross = {(0, 1): (z, 1.0), (0, 2): (y, -1.0), (1, 0): (z, -1.0), (1, 2): (x, 1.0)}
+    cross |= {(2, 0): (y, 1.0), (2, 1): (x, -1.0)}
+    for (r, c), (q, sign) in cross.items():
+        M[r, 3 + c, q] = sign
+        M[3 + c, r, q] = sign
+    for r in range(3):
+        M[3 + r, 3 + r, one] = -1.0
+    M = M.reshape(36, 10)
+    if all_pairs:
+        pairs = [(a, b) for a in range(4) for b in range(a, 4)]  # the order of the 10
+        wide = torch.zeros(36, 16, dtype=torch.float64)
+        for q, (a, b) in enumerate(pairs):
+            wide[:, 4 * b + a] = M[:, q]
+        M = wide
+    return M
 
 
 def choose_reduced_solver(

@@ -18,6 +18,8 @@ import weakref
 import torch
 from torch import Tensor
 
+from torchslam import _inference
+
 __all__ = ["SPARSE_MIN_EDGES", "segment_sum"]
 
 # Below this many edges index_add_ is as fast (the sparse product's fixed cost dominates).
@@ -71,23 +73,31 @@ def _csr(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
         and index.storage_offset() == base.storage_offset()
     ):
         index = base  # a full reshape: the same entries in the same order share one matrix
+    if not _inference.cacheable(index):  # no version counter: build, do not keep
+        return _ones_matrix(index, rows, dtype)
     key = id(index)
     cached = _CSR.get(key)
     if cached is not None and cached[0]() is index and cached[1:4] == (index._version, rows, dtype):
         return cached[4]
+    with _inference.outside():  # kept: a normal tensor, even made in a solve
+        ones = _ones_matrix(index, rows, dtype)
+    reference = weakref.ref(index, lambda _, key=key: _CSR.pop(key, None))
+    _CSR[key] = (reference, index._version, rows, dtype, ones)
+    return ones
+
+
+def _ones_matrix(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
+    """The (rows × N) CSR matrix with a 1 at (index[e], e)."""
     flat = index.reshape(-1)
     order = torch.argsort(flat, stable=True)
     crow = torch.zeros(rows + 1, dtype=torch.int64)
     torch.cumsum(torch.bincount(flat, minlength=rows), 0, out=crow[1:])
     with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta state"
         warnings.simplefilter("ignore", UserWarning)
-        ones = torch.sparse_csr_tensor(
+        return torch.sparse_csr_tensor(
             crow,
             order,
             torch.ones(flat.numel(), dtype=dtype),
             size=(rows, flat.numel()),
             check_invariants=False,
         )
-    reference = weakref.ref(index, lambda _, key=key: _CSR.pop(key, None))
-    _CSR[key] = (reference, index._version, rows, dtype, ones)
-    return ones
