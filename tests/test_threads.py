@@ -60,3 +60,22 @@ def test_an_exception_inside_restores_the_thread_count(two_threads):
     with pytest.raises(KeyError), _threads.threads_for(data):
         raise KeyError("inside")
     assert torch.get_num_threads() == 2
+
+
+def test_problem_construction_follows_the_policy_and_restores(two_threads, monkeypatch):
+    """A small problem's construction (its checks and gauge) runs on one thread too."""
+    seen = []
+    original = ts.problem._gauge.hold_ill_posed_fixed
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(ts.problem._gauge, "hold_ill_posed_fixed", spy)
+    _problem("S")
+    assert seen == [1]
+    assert torch.get_num_threads() == 2
+    seen.clear()
+    _problem("BATCH")
+    assert seen == [2]
+    assert torch.get_num_threads() == 2

@@ -9,7 +9,9 @@ in every region: with one of two cores kept busy by another process, case S of `
 bench`` took 102 ms on 2 threads without this policy, 28 ms with it (25 ms on 1 thread). So a
 solve (forward, and the implicit backward) whose largest per-operation tensor,
 :func:`solve_entries`, is below :data:`GRAIN_SIZE` runs on one intra-op thread; a larger one on
-torch's setting (``torch.get_num_threads()``). The count is restored on exit. Like
+torch's setting (``torch.get_num_threads()``); a :class:`torchslam.PointMapProblem`'s
+construction (its argument checks and gauge) follows the same rule. The count is restored on
+exit. Like
 ``torch.set_num_threads`` itself this is a process setting: do not change torch's thread count
 from another Python thread while a solve runs.
 """
@@ -24,7 +26,7 @@ import torch
 
 from torchslam.objective.data import PointMapData
 
-__all__ = ["GRAIN_SIZE", "solve_entries", "threads_for"]
+__all__ = ["GRAIN_SIZE", "solve_entries", "threads_for", "threads_for_entries"]
 
 # at::internal::GRAIN_SIZE: the elements below which torch's elementwise kernels stay serial.
 GRAIN_SIZE = 32768
@@ -48,8 +50,16 @@ def solve_entries(data: PointMapData) -> int:
 def threads_for(data: PointMapData) -> Iterator[None]:
     """``with threads_for(data):`` one intra-op thread inside when :func:`solve_entries` of
     ``data`` is below :data:`GRAIN_SIZE` (module doc), torch's setting otherwise."""
+    with threads_for_entries(solve_entries(data)):
+        yield
+
+
+@contextlib.contextmanager
+def threads_for_entries(entries: int) -> Iterator[None]:
+    """:func:`threads_for` for work whose largest per-operation tensor has ``entries``
+    entries (a problem's construction and checks)."""
     threads = torch.get_num_threads()
-    if threads == 1 or solve_entries(data) >= GRAIN_SIZE:
+    if threads == 1 or entries >= GRAIN_SIZE:
         yield
         return
     torch.set_num_threads(1)

@@ -42,6 +42,7 @@ import torch
 from torch import Tensor, nn
 
 from torchslam import _checks, jacobians, losses
+from torchslam._threads import threads_for_entries
 from torchslam.lie import se3
 from torchslam.objective import data as _data
 from torchslam.objective import gauge as _gauge
@@ -126,45 +127,47 @@ class PointMapProblem(nn.Module):
         scalar_weights, information = _data.split_weights(fn, weights, B, E, observations)
         terms = _terms.bind_terms(fn, terms, B, m, observations, n)
 
-        _checks.check_pose_matrix(fn, "poses", poses)
-        _checks.check_finite(fn, "points", points)
-        self.diagnostics: list[str] = []
-        checked = _checks.value_checks_active()
-        if checked:
-            _data.check_observations(fn, observations, valid, pose_index, point_index, m, n)
-            _data.check_weight_values(fn, valid, scalar_weights, information)
-            fixed_poses, fixed_points = _gauge.hold_ill_posed_fixed(
-                fn,
-                valid,
-                pose_index,
-                point_index,
-                fixed_poses,
-                fixed_points,
-                self.diagnostics,
-                _gauge.term_links(terms, B) if terms else None,
-                _gauge.point_term_counts(terms, B, m, n),
-            )
+        # Small problems' checks on one thread (torchslam._threads).
+        with threads_for_entries(max(9 * B * E, 16 * B * m, 3 * B * n)):
+            _checks.check_pose_matrix(fn, "poses", poses)
+            _checks.check_finite(fn, "points", points)
+            self.diagnostics: list[str] = []
+            checked = _checks.value_checks_active()
+            if checked:
+                _data.check_observations(fn, observations, valid, pose_index, point_index, m, n)
+                _data.check_weight_values(fn, valid, scalar_weights, information)
+                fixed_poses, fixed_points = _gauge.hold_ill_posed_fixed(
+                    fn,
+                    valid,
+                    pose_index,
+                    point_index,
+                    fixed_poses,
+                    fixed_points,
+                    self.diagnostics,
+                    _gauge.term_links(terms, B) if terms else None,
+                    _gauge.point_term_counts(terms, B, m, n),
+                )
 
-        # The poses were checked above: the private log (a new tensor) skips checking again.
-        self.pose_tangent = nn.Parameter(se3._log(poses.detach()))
-        self.points = nn.Parameter(points.detach().clone())
-        # PointMapData makes the padding inert (index 0, observation 0, weight 1, information
-        # I), whatever it holds: NaN, Inf, out-of-range indices.
-        self.data = _data.PointMapData(
-            pose_index=pose_index,
-            point_index=point_index,
-            observations=observations,
-            valid=valid,
-            weights=scalar_weights,
-            information=information,
-            fixed_poses=fixed_poses,
-            fixed_points=fixed_points,
-            loss=loss,
-            terms=terms,
-        )
-        # Checked above, or deliberately not (built inside validation(False)): a solve does not
-        # check these values again (a non-finite observation then shows in the status).
-        _data.mark_checked(self.data)
+            # The poses were checked above: the private log (a new tensor) skips checking again.
+            self.pose_tangent = nn.Parameter(se3._log(poses.detach()))
+            self.points = nn.Parameter(points.detach().clone())
+            # PointMapData makes the padding inert (index 0, observation 0, weight 1, information
+            # I), whatever it holds: NaN, Inf, out-of-range indices.
+            self.data = _data.PointMapData(
+                pose_index=pose_index,
+                point_index=point_index,
+                observations=observations,
+                valid=valid,
+                weights=scalar_weights,
+                information=information,
+                fixed_poses=fixed_poses,
+                fixed_points=fixed_points,
+                loss=loss,
+                terms=terms,
+            )
+            # Checked above, or deliberately not (built inside validation(False)): a solve does not
+            # check these values again (a non-finite observation then shows in the status).
+            _data.mark_checked(self.data)
 
     def _apply(self, fn, recurse: bool = True):
         # nn.Module.to / .double() / .cuda() reach the parameters through _apply; the data is
