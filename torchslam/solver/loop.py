@@ -181,7 +181,6 @@ def update_status(
     x_norm: Tensor,
     gradient: Tensor,
     lam: Tensor,
-    cost: Tensor,
 ) -> Tensor:
     """The stopping rules, applied after an iteration to the problems still running, (B,).
 
@@ -196,19 +195,20 @@ def update_status(
     4. ``LINEAR_SOLVE_FAILED`` (Gauss-Newton only): the normal equations were not positive
        definite, and there is no damping to fall back on.
     5. ``DAMPING_LIMIT`` (Levenberg-Marquardt only): λ > ``max_lambda``.
-    6. ``NON_FINITE``: the kept cost is not finite.
 
-    ``MAX_ITERATIONS`` is set by :func:`run` when the loop ends.
+    The rules apply to the active problems (running, below ``max_iterations``); the others keep
+    their status. ``MAX_ITERATIONS`` is set by :func:`run` when the loop ends; ``NON_FINITE``
+    by :func:`initial_state` for a problem whose starting cost is not finite (the loop keeps
+    only finite costs: a step to a non-finite one is rejected).
     """
-    f_conv = accepted & ((old_cost - new_cost).abs() <= config.function_tolerance * old_cost)
+    limit = config.function_tolerance * old_cost
+    f_conv = accepted & ((old_cost - new_cost).abs() <= limit)
     if predicted is not None:
         # A negative prediction is an indefinite model (round-off in a damped factor whose
         # sign check was skipped), never "nothing left to gain".
-        small = (predicted >= 0) & (predicted <= config.function_tolerance * old_cost)
-        f_conv = f_conv | (ok & small)
-    # The rules that apply to active problems, in order, then those that apply to every
-    # running one: one stacked (R, B) tensor and the first rule that holds per problem (a few
-    # whole-tensor operations, however many rules).
+        f_conv = f_conv | (ok & (predicted >= 0) & (predicted <= limit))
+    # One stacked (R, B) tensor and the first rule that holds per problem (a few whole-tensor
+    # operations, however many rules).
     rules = [
         f_conv,
         gradient <= config.gradient_tolerance,
@@ -218,19 +218,15 @@ def update_status(
     if config.algorithm == "gauss_newton":
         rules.append(~ok)
         outcomes.append(Status.LINEAR_SOLVE_FAILED)
-    holds = [torch.stack(rules) & active]
     if config.algorithm == "levenberg_marquardt":
-        holds.append((lam > config.max_lambda)[None])
+        rules.append(lam > config.max_lambda)
         outcomes.append(Status.DAMPING_LIMIT)
-    holds.append((active & ~_finite(cost))[None])
-    outcomes.append(Status.NON_FINITE)
-    holds = torch.cat(holds)
+    holds = torch.stack(rules) & active
     codes = _series.constant(
         ("status codes", *outcomes), [int(o) for o in outcomes], torch.long, status.device
     )
     first = codes.index_select(0, holds.to(torch.uint8).argmax(0))  # the first that holds
-    stops = (status == int(Status.RUNNING)) & holds.any(0)
-    return torch.where(stops, first, status)
+    return torch.where(holds.any(0), first, status)
 
 
 def iterate(
@@ -331,7 +327,6 @@ def iterate(
                 x_norm=x_norm,
                 gradient=gradient_norm(lin),
                 lam=lam,
-                cost=cost.detach(),
             )
         s = State(
             s.start,
