@@ -160,8 +160,66 @@ class PointMapData:
     def num_points(self) -> int:
         return self.fixed_points.shape[-1]
 
+    def _derived(self, name: str, sources: tuple[Tensor, ...], compute):
+        """``compute()``, kept on the data while ``sources`` are unedited (their versions: the
+        fields cannot be reassigned, but a tensor can be edited in place); not kept for
+        inference or ``torch.func`` tensors, nor for anything that needs a gradient."""
+        if not all(
+            _inference.cacheable(t) and not torch._C._functorch.is_functorch_wrapped_tensor(t)
+            for t in sources
+        ):
+            return compute()
+        versions = tuple(t._version for t in sources)
+        cached = self.__dict__.get(name)
+        if cached is not None and cached[0] == versions:
+            return cached[1]
+        with _inference.outside(), torch.no_grad():
+            value = compute()
+        self.__dict__[name] = (versions, value)
+        return value
+
+    def all_valid(self) -> bool:
+        """Whether no observation slot is padding (the solver then skips its masking): one
+        host read, kept; False under ``torch.func`` transforms (no read possible)."""
+        if torch._C._functorch.is_functorch_wrapped_tensor(self.valid):
+            return False
+        return self._derived("_all_valid", (self.valid,), lambda: bool(self.valid.all()))
+
+    def observation_masks(self) -> tuple[Tensor, Tensor]:
+        """(free pose, free point) of each observation, bool (B, E): its pose, its point is
+        not held fixed. Kept."""
+
+        def compute() -> tuple[Tensor, Tensor]:
+            free_pose = ~torch.gather(self.fixed_poses, 1, self.pose_index)
+            return free_pose, ~torch.gather(self.fixed_points, 1, self.point_index)
+
+        sources = (self.fixed_poses, self.pose_index, self.fixed_points, self.point_index)
+        return self._derived("_observation_masks", sources, compute)
+
+    def unit_weights(self, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Without ``weights`` and ``information``: w (1 on valid slots, 0 on padding) and its
+        products with the free masks (:meth:`observation_masks`), w·free pose, w·free point
+        and w·both, each (B, E) of ``dtype``. Kept per dtype."""
+
+        def compute() -> tuple[Tensor, Tensor, Tensor, Tensor]:
+            free_pose, free_point = self.observation_masks()
+            w = self.valid.to(dtype)
+            w_pose = w * free_pose
+            return w, w_pose, w * free_point, w_pose * free_point
+
+        sources = (
+            self.valid,
+            self.fixed_poses,
+            self.pose_index,
+            self.fixed_points,
+            self.point_index,
+        )
+        return self._derived(f"_unit_weights_{dtype}", sources, compute)
+
     def masked_observations(self) -> Tensor:
         """Observations (B, E, 3) with 0 on the padding (whatever it holds)."""
+        if self.all_valid():
+            return self.observations
         return torch.where(self.valid[..., None], self.observations, 0.0)
 
     def masked_weights(self) -> Tensor | None:

@@ -270,6 +270,8 @@ def _residuals(poses: Tensor, points: Tensor, data: PointMapData):
     T_e = per_observation(poses, data.flat_pose_index)
     X_e = gather_points(points, data)
     r = data.masked_observations() - se3.act(T_e, X_e)
+    if data.all_valid():
+        return r, T_e, X_e
     return torch.where(data.valid[..., None], r, 0.0), T_e, X_e
 
 
@@ -321,12 +323,14 @@ def _linearize_points(poses, points, data, factor, jacobian_mode, structured):
     if empty and structured and data.information is None and jacobian_mode == "analytic":
         return _no_observations(poses, points, data)
     r, T_e, X_e = _residuals(poses, points, data)
-    free_pose = ~torch.gather(data.fixed_poses, 1, data.pose_index)
-    free_point = ~torch.gather(data.fixed_points, 1, data.point_index)
+    free_pose, free_point = data.observation_masks()
     valid = data.valid
-    # Scalar weights with 0 on the padding (whatever it holds).
+    # Scalar weights with 0 on the padding (whatever it holds), and (unit weights) their
+    # products with the free masks, made once per data.
+    products = None
     if data.weights is None:
-        weight = valid.to(r.dtype)
+        products = data.unit_weights(r.dtype)
+        weight = products[0]
     else:
         weight = torch.where(valid, data.weights, 0.0)
 
@@ -343,8 +347,13 @@ def _linearize_points(poses, points, data, factor, jacobian_mode, structured):
             # The corrector adds an anisotropic term only where ρ'' > 0 (never for Huber,
             # Cauchy, Tukey); then the block form is needed.
             isotropic = not bool(((rho2 > 0) & (s > 0) & valid & (rho1 > 0)).any())
+            if products is not None:  # w·mask = ρ'·(1·mask): the same (exact) products
+                products = (w, *(rho1 * p for p in products[1:]))
         if isotropic:
-            return _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data)
+            if products is None:
+                w_pose = w * free_pose
+                products = (w, w_pose, w * free_point, w_pose * free_point)
+            return _structured(r, T_e, X_e, points, products, cost, free_pose, free_point, data)
 
     if jacobian_mode == "analytic":
         J_xi, J_X = point_observation_jacobians(T_e, X_e)
@@ -353,7 +362,9 @@ def _linearize_points(poses, points, data, factor, jacobian_mode, structured):
     return _blocks(r, J_xi, J_X, factor, free_pose, free_point, data)
 
 
-def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
+def _structured(r, T_e, X_e, points, products, cost, free_pose, free_point, data):
+    """The structured form; ``products``: (w, w·free pose, w·free point, w·both), (B, E)."""
+    w, w_pose, w_point, w_both = products
     B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
     # the cached (B, E) indices: segment_sum keeps its sparse matrices per index tensor
@@ -366,10 +377,10 @@ def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
     gp = segment_sum(pose_index, B * m, g_pose_e.reshape(-1, 6))
     gl = segment_sum(point_index, B * n, q_point.reshape(-1, 3))
     # U_i = Σ w G_jᵀ G_j from weighted monomial sums.
-    mono = monomials(X_e) * (w * free_pose)[..., None]
+    mono = monomials(X_e) * w_pose[..., None]
     sums = segment_sum(pose_index, B * m, mono.reshape(-1, 10))
     U = blocks_from_monomials(sums).reshape(B, m, 6, 6)
-    v = segment_sum(point_index, B * n, (w * free_point).reshape(-1)).reshape(B, n)
+    v = segment_sum(point_index, B * n, w_point.reshape(-1)).reshape(B, n)
     U = torch.where(data.fixed_poses[..., None, None], _series.eye(6, U.dtype, U.device), U)
     v = torch.where(data.fixed_points, 1.0, v)
     return StructuredLinearization(
@@ -379,7 +390,7 @@ def _structured(r, T_e, X_e, points, w, cost, free_pose, free_point, data):
         pose_blocks=U,
         point_weight=v,
         weight=w,
-        coupling_weight=w * free_pose * free_point,
+        coupling_weight=w_both,
         points=points,
         free_pose=free_pose,
         free_point=free_point,
