@@ -94,6 +94,9 @@ def _rows(key: tuple, series: tuple, dtype: torch.dtype, device: torch.device) -
 def eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """``torch.eye(n, dtype, device)`` made once per (n, dtype, device) (:func:`constant`);
     shared: never write to it."""
+    table = _TABLES.get((("eye", n), dtype, device))  # before building the values (hot path)
+    if table is not None:
+        return table
     identity = tuple(tuple(float(i == j) for j in range(n)) for i in range(n))
     return constant(("eye", n), identity, dtype, device)
 
