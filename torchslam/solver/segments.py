@@ -52,11 +52,11 @@ def segment_sum(index: Tensor, rows: int, values: Tensor) -> Tensor:
 
 def _sparse_applies(index: Tensor, values: Tensor) -> bool:
     return (
-        type(values) is torch.Tensor
+        values.shape[0] >= SPARSE_MIN_EDGES  # first: small problems decide here
+        and type(values) is torch.Tensor
         and type(index) is torch.Tensor
         and values.device.type == "cpu"
         and values.dtype in (torch.float32, torch.float64)
-        and values.shape[0] >= SPARSE_MIN_EDGES
         and values.numel() > 0
         and not (torch.is_grad_enabled() and values.requires_grad)
         and not torch._C._functorch.is_functorch_wrapped_tensor(values)
