@@ -145,17 +145,20 @@ def orthonormality_tolerance(dtype: torch.dtype) -> float:
     return 1e-6 if dtype == torch.float64 else 1e-4
 
 
-def check_rotation(fn: str, name: str, R: Tensor) -> None:
-    """Raise ValueError if ``R`` (..., 3, 3) is not a rotation (orthonormal with det +1)."""
+def check_rotation(fn: str, name: str, R: Tensor, *, finite_checked: bool = False) -> None:
+    """Raise ValueError if ``R`` (..., 3, 3) is not a rotation (orthonormal with det +1);
+    ``finite_checked``: the caller has checked that R is finite."""
     if not value_checks_active():
         return
-    check_finite(fn, name, R)
+    if not finite_checked:
+        check_finite(fn, name, R)
     if R.numel() == 0:
         return
     Rd = R.detach()
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
     deviation = (Rd.transpose(-1, -2) @ Rd - eye).abs().amax(dim=(-1, -2))
-    det = torch.linalg.det(Rd)
+    # det R = r₀ · (r₁ × r₂) of its rows: a few operations (linalg.det factors each matrix).
+    det = (Rd[..., 0, :] * torch.linalg.cross(Rd[..., 1, :], Rd[..., 2, :], dim=-1)).sum(-1)
     tol = orthonormality_tolerance(R.dtype)
     # NaN-safe: RᵀR and det overflow to Inf/NaN for huge finite entries, and NaN > tol is False.
     bad = ~(deviation <= tol) | ~(det > 0)
@@ -188,17 +191,30 @@ def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
         )
 
 
+_BOTTOM_ROWS: dict[tuple[torch.dtype, torch.device], Tensor] = {}
+
+
+def _bottom_row(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[0, 0, 0, 1], made once per dtype and device (a normal tensor, whatever the mode)."""
+    row = _BOTTOM_ROWS.get((dtype, device))
+    if row is None:
+        with torch.inference_mode(False), torch.no_grad():
+            row = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device)
+        if type(row) is torch.Tensor:  # not a fake tensor (tracing)
+            _BOTTOM_ROWS[(dtype, device)] = row
+    return row
+
+
 def check_pose_matrix(fn: str, name: str, T: Tensor) -> None:
     """Raise ValueError if ``T`` (..., 4, 4) is not a rigid transform [[R, t], [0, 1]]."""
     if not value_checks_active():
         return  # before slicing T: this is on hot paths under validation(False)
     check_finite(fn, name, T)
-    check_rotation(fn, name, T[..., :3, :3])
+    check_rotation(fn, name, T[..., :3, :3], finite_checked=True)
     if T.numel() == 0:
         return
     bottom = T.detach()[..., 3, :]
-    expected = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
-    bad = (bottom != expected).any(dim=-1)
+    bad = (bottom != _bottom_row(T.dtype, T.device)).any(dim=-1)
     if bool(bad.any()):
         idx = tuple(int(i) for i in bad.nonzero()[0].tolist())
         raise ValueError(

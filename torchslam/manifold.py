@@ -26,8 +26,9 @@ form, a twist ξ). Conventions: ξ = (ω, v), rotation first; right perturbation
 
 :func:`right_jacobian_jacrev` is the one ``torch.func.jacrev``-at-zero helper: the Jacobians of
 any function of poses (right perturbations T·Exp(δ)) and vectors, for terms without analytic
-blocks and for tests. :meth:`SE3Tangent.retract` is the retraction the solver applies to its
-iterates.
+blocks and for tests. :meth:`SE3Tangent.retract` is the solver's step on twists: the solver
+(:func:`torchslam.solver.loop.retract`) steps the matrices T ← T·Exp(δ) and takes ξ = Log(T)
+once at the end, the same twists bit for bit.
 
 Every method takes arbitrary leading batch dims (leading dims of the arguments broadcast), keeps
 dtype and device, is differentiable and ``torch.func`` (jacrev/vmap) compatible. Shapes and
@@ -549,7 +550,8 @@ class SE3Tangent(Manifold):
     def retract(
         self, x: Tensor, delta: Tensor, *, exp_x: Tensor | None = None, with_exp: bool = False
     ) -> Tensor | tuple[Tensor, Tensor]:
-        """The solver's step ξ ← Log(Exp(ξ)·Exp(δ)) (left: Log(Exp(δ)·Exp(ξ))), seed eq. L1/L2.
+        """The solver's step on twists, ξ ← Log(Exp(ξ)·Exp(δ)) (left: Log(Exp(δ)·Exp(ξ))), seed
+        eq. L1/L2 (the solver steps Exp(ξ) and takes the Log once, with the same result).
 
         The same values as :meth:`plus` (bit for bit for |ω|, |δω| ≤ 2²⁰ and translations up
         to 2⁵¹², float64; 2¹⁰ and 2⁶⁴ in float32), computed with the cheaper θ-power forms
