@@ -131,7 +131,9 @@ def check_finite(fn: str, name: str, x: Tensor) -> None:
     """Raise ValueError if ``x`` holds NaN or Inf (only when value checks are active)."""
     if not value_checks_active():
         return
-    bad = ~torch.isfinite(x.detach())
+    if not (x.is_floating_point() or x.is_complex()):
+        return  # integers and booleans are finite
+    bad = ~(x.detach().abs() < _math.inf)  # isfinite in two operations (NaN compares False)
     if bool(bad.any()):
         first = tuple(int(i) for i in bad.nonzero()[0].tolist())
         raise ValueError(

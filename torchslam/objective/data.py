@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass
 
 import torch
@@ -495,7 +496,7 @@ def check_observations(
                 f"{fn}: '{name}' out of range [0, {size}): problem {b}, observation {e} has "
                 f"index {int(index[b, e])}{none}"
             )
-    bad = valid[..., None] & ~torch.isfinite(observations.detach())
+    bad = valid[..., None] & ~(observations.detach().abs() < math.inf)  # not finite (or NaN)
     if bool(bad.any()):
         b, e, _ = (int(i) for i in bad.nonzero()[0])
         raise ValueError(
