@@ -146,8 +146,9 @@ def _format_row(r: dict, with_threads: bool = False) -> str:
     extra = ""
     if "scipy_s" in r:
         extra = (
-            f"; scipy {r['scipy_s']:.3f} s (cost {r['scipy_final_cost']:.6g}), "
-            f"speed-up {r['speedup_vs_scipy']:.1f}×"
+            f"; scipy {r['scipy_s']:.3f} s (cost {r['scipy_final_cost']:.6g}, "
+            f"{r['scipy_runs']} runs), speed-up {r['speedup_vs_scipy']:.1f}× (median of the "
+            f"paired ratios; {r['speedup_vs_scipy_of_medians']:.1f}× the ratio of the medians)"
         )
     if "peak_memory_gib" in r:
         extra += f"; peak memory {r['peak_memory_gib']:.2f} GiB"
