@@ -130,10 +130,27 @@ def sinc_coefficients(theta2: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(small, a_series, a), torch.where(small, b_series, b)
 
 
+def _all_small(small: Tensor) -> bool:
+    """Whether every angle is on the series branch, read on the host: only for plain CPU
+    tensors outside ``torch.func`` transforms (elsewhere False, without a read)."""
+    return (
+        type(small) is torch.Tensor
+        and small.device.type == "cpu"
+        and not torch._C._functorch.is_functorch_wrapped_tensor(small)
+        and bool(small.all())
+    )
+
+
 def exp_coefficients(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """(a, b, c) of :func:`sinc_coefficients` and :func:`jacobian_coefficient_c` at once (the
-    same values, one series pass): what Exp of SE(3) needs."""
-    small, t2, t = _split(theta2)
+    same values, one series pass): what Exp of SE(3) needs. When every angle is on the series
+    branch (a solver's step, on the CPU), the closed forms are not evaluated: the same values
+    and gradients, half the operations."""
+    small = theta2 < SMALL_ANGLE_SQUARED[theta2.dtype]
+    if _all_small(small):
+        return _horner_stack(theta2, _A, _B, _C)
+    theta2_safe = torch.where(small, 1.0, theta2)
+    t2, t = theta2_safe, torch.sqrt(theta2_safe)
     s = torch.sin(t)
     a = s / t
     b = 2.0 * torch.sin(0.5 * t) ** 2 / t2
