@@ -100,3 +100,23 @@ def test_solve_inside_a_users_inference_mode_matches():
     assert torch.equal(result.pose_tangent, reference.pose_tangent)
     assert torch.equal(result.points, reference.points)
     assert result.status == reference.status
+
+
+def test_the_callback_runs_outside_inference_mode():
+    """What a callback keeps or computes is a normal tensor, and it can turn gradients on."""
+    scene, init = drifted(5, 30)
+    problem = problem_from(scene, init.poses, init.points)
+    kept, flags = [], []
+    w = torch.ones((), dtype=torch.float64, requires_grad=True)
+
+    def callback(info):
+        kept.append(info.cost * 1.0)
+        with torch.enable_grad():
+            flags.append((w * info.cost.sum()).requires_grad)
+
+    torchslam.solve(problem, torchslam.SolverConfig(max_iterations=2), callback=callback)
+    assert kept and all(flags)
+    assert not kept[0].is_inference()
+    kept[0].add_(1.0)
+    (w * kept[0]).sum().backward()
+    assert w.grad is not None

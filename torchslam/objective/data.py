@@ -164,7 +164,9 @@ class PointMapData:
     def _derived(self, name: str, sources: tuple[Tensor, ...], compute):
         """``compute()``, kept on the data while ``sources`` are unedited (their versions: the
         fields cannot be reassigned, but a tensor can be edited in place); not kept for
-        inference or ``torch.func`` tensors, nor for anything that needs a gradient."""
+        inference or ``torch.func`` tensors, nor for anything that needs a gradient. An edit
+        that bypasses the version counter (through ``.data``, a NumPy view or DLPack) is not
+        seen, as autograd does not see it: edit the tensor itself, or build a new data."""
         if not all(
             _inference.cacheable(t) and not torch._C._functorch.is_functorch_wrapped_tensor(t)
             for t in sources

@@ -480,9 +480,9 @@ def solve_pose_graph(
             xi, xi.new_zeros(1, 0, 3), data, solver_config, report, False, plan=plan
         )
         solved = loop.result(state, history, start)
-        # The matrices the loop iterated on (no Exp∘Log round trip); the gauge vertices keep
-        # their poses bit for bit.
-        optimized = torch.where(data.fixed_poses[0][:, None, None], T, state.poses[0])
+        optimized = se3.exp(solved.pose_tangent[0])
+        # The gauge vertices keep their poses bit for bit (no Log∘Exp round trip).
+        optimized = torch.where(data.fixed_poses[0][:, None, None], T, optimized)
         g = state.lin.pose_gradient[0]
         gradient_norm = float(g.abs().max()) if g.numel() else 0.0
     return PoseGraphSolveResult(

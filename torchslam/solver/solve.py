@@ -129,10 +129,12 @@ def _solve_tensors(
         count[0] += 1
         if callback is None and not logger.isEnabledFor(logging.INFO):
             return
+        # The callback runs outside the loop's inference mode (without gradients, as before
+        # it): what it keeps or computes are normal tensors.
         with _inference.outside():
             info = _inference.plain(loop.iteration_info(state, count[0], start))
-        if callback is not None:
-            callback(info)
+            if callback is not None:
+                callback(info)
         logger.info(
             "iter %3d  cost %.6e  lambda %.2e  |step| %.2e  accepted %d",
             count[0],
