@@ -96,7 +96,8 @@ def run_case_threads(
 ) -> list[dict]:
     """:func:`run_case` on several torch thread counts (the keys of ``rates``, each with its
     matmul rate measured at start-up), interleaved: every repeat runs the case once
-    under each count in turn, so that the machine's drift hits all counts alike. One row per
+    under each count in turn (in reversed order every other repeat), so that the machine's
+    drift and the warm-up of a round's first solve hit all counts alike. One row per
     count, in the order of ``rates``; each also holds ``threads`` and ``paired_ratio``, the
     median over repeats of its time divided by the first count's time in the same repeat.
     For L, the case whose FLOP ratio is a goal, the ratio uses the matmul rate measured right
@@ -131,7 +132,9 @@ def run_case_threads(
             cheap = first is not None and first["scipy_s"] < SCIPY_EVERY_ROUND_S
             run = with_scipy and (1 <= round_ <= 3 or (round_ > 3 and cheap))
             scipy_runs.append((run_scipy(scene, init) or None) if run else None)
-            for threads in counts:
+            # The order of the counts alternates between rounds: the second solve of a round
+            # runs a few percent faster (warm caches), which would favour one count.
+            for threads in counts if round_ % 2 == 0 else counts[::-1]:
                 torch.set_num_threads(threads)
                 t = time.perf_counter()
                 if case == "TRAIN":
