@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from torchslam import _checks, _inference, losses
+from torchslam._threads import threads_for
 from torchslam.objective.data import PointMapData, check_data_values
 from torchslam.problem import PointMapProblem
 from torchslam.solver import loop
@@ -121,7 +122,13 @@ def _solve_tensors(
     config: SolverConfig,
     callback: Callable[[IterationInfo], None] | None,
 ) -> SolveResult:
-    """:func:`solve_tensors` after its argument checks."""
+    """:func:`solve_tensors` after its argument checks; all of it under the thread policy of
+    :mod:`torchslam._threads` (the loop's, extended to the result's copies)."""
+    with threads_for(data):
+        return _solve_tensors_threaded(pose_tangent, points, data, config, callback)
+
+
+def _solve_tensors_threaded(pose_tangent, points, data, config, callback) -> SolveResult:
     start = time.perf_counter()
     count = [0]
 
