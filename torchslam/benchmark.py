@@ -31,6 +31,8 @@ from torchslam.lie import se3
 REPEATS = {"S": 20, "M": 10, "L": 3, "O": 5, "BATCH": 5, "TRAIN": 5}
 # scipy runs in every repeat (not only the first 3) when one of its runs takes less than this.
 SCIPY_EVERY_ROUND_S = 1.0
+# Seconds of pause after a scipy run, before the next timed solve (see run_case_threads).
+SCIPY_PAUSE_S = 0.3
 TARGETS_S = {"S": 0.020, "M": 0.1, "L": 1.0, "BATCH": 0.3}
 # Reference timings quoted in the issue for this machine (seconds).
 REFERENCE = {
@@ -126,12 +128,25 @@ def run_case_threads(
     square = torch.randn(1000, 1000, dtype=torch.float64)
     result = None
     previous = torch.get_num_threads()
+
+    def solve_once() -> ts.SolveResult:
+        problem = ts.PointMapProblem.from_scene(scene, init.poses, init.points, loss=loss)
+        return ts.solve(problem)
+
     try:
         for round_ in range(repeats + 1):  # the first round warms up
             first = scipy_runs[1] if len(scipy_runs) > 1 else None
             cheap = first is not None and first["scipy_s"] < SCIPY_EVERY_ROUND_S
             run = with_scipy and (1 <= round_ <= 3 or (round_ > 3 and cheap))
             scipy_runs.append((run_scipy(scene, init) or None) if run else None)
+            if run:
+                # NumPy's BLAS threads spin for a while after scipy's run, and a solve on 2
+                # torch threads started at once competes with them for the cores (M took 2-3×
+                # longer); after a pause the first solve runs cold. So: a pause, then one
+                # untimed solve.
+                time.sleep(SCIPY_PAUSE_S)
+                torch.set_num_threads(counts[0])
+                solve_once()
             # The order of the counts alternates between rounds: the second solve of a round
             # runs a few percent faster (warm caches), which would favour one count.
             for threads in counts if round_ % 2 == 0 else counts[::-1]:
@@ -141,10 +156,7 @@ def run_case_threads(
                     result, backward_s = training_step(scene, init)
                     backward[threads].append(backward_s)
                 else:
-                    problem = ts.PointMapProblem.from_scene(
-                        scene, init.poses, init.points, loss=loss
-                    )
-                    result = ts.solve(problem)
+                    result = solve_once()
                 times[threads].append(time.perf_counter() - t)
                 if case in RATE_PER_SOLVE_CASES:
                     # Right after the solve, not before it: the product's 24 MB of operands
