@@ -12,7 +12,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["matmul", "sum_last"]
+__all__ = ["GRAIN_SIZE", "matmul", "sum_last"]
+
+# at::internal::GRAIN_SIZE: the elements below which torch's elementwise kernels stay serial.
+GRAIN_SIZE = 32768
 
 
 def matmul(a: Tensor, b: Tensor) -> Tensor:
@@ -47,7 +50,7 @@ def sum_last(x: Tensor) -> Tensor:
     5× more on the CPU, and its sum runs left to right too. Small tensors keep the one
     reduction (fewer operations)."""
     k = x.shape[-1]
-    if not 2 <= k <= 4 or x.numel() < 32768:
+    if not 2 <= k <= 4 or x.numel() < GRAIN_SIZE:
         return x.sum(-1)
     out = x[..., 0] + x[..., 1]
     for i in range(2, k):

@@ -193,18 +193,11 @@ def check_unit_quaternion(fn: str, name: str, q: Tensor) -> None:
         )
 
 
-_BOTTOM_ROWS: dict[tuple[torch.dtype, torch.device], Tensor] = {}
-
-
 def _bottom_row(dtype: torch.dtype, device: torch.device) -> Tensor:
-    """[0, 0, 0, 1], made once per dtype and device (a normal tensor, whatever the mode)."""
-    row = _BOTTOM_ROWS.get((dtype, device))
-    if row is None:
-        with torch.inference_mode(False), torch.no_grad():
-            row = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device)
-        if type(row) is torch.Tensor:  # not a fake tensor (tracing)
-            _BOTTOM_ROWS[(dtype, device)] = row
-    return row
+    """[0, 0, 0, 1], made once per dtype and device."""
+    from torchslam.lie import _series  # here: the lie package imports this module
+
+    return _series.constant("pose bottom row", (0.0, 0.0, 0.0, 1.0), dtype, device)
 
 
 def check_pose_matrix(fn: str, name: str, T: Tensor) -> None:

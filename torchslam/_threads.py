@@ -24,12 +24,10 @@ from collections.abc import Iterator
 
 import torch
 
+from torchslam._batched import GRAIN_SIZE
 from torchslam.objective.data import PointMapData
 
 __all__ = ["GRAIN_SIZE", "solve_entries", "threads_for", "threads_for_entries"]
-
-# at::internal::GRAIN_SIZE: the elements below which torch's elementwise kernels stay serial.
-GRAIN_SIZE = 32768
 
 
 def solve_entries(data: PointMapData) -> int:

@@ -59,14 +59,18 @@ _TABLES: dict[tuple, Tensor] = {}
 
 
 def constant(key: object, values: object, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``torch.tensor(values, dtype, device)``, made once per (key, dtype, device): the
-    coefficient tables and index vectors of the Lie functions (small batches are bound by
-    the number of tensor operations, and making a tensor costs several)."""
+    """``torch.as_tensor(values, dtype, device)``, made once per (key, dtype, device): the
+    coefficient tables, index vectors and other constant matrices of the library (small
+    batches are bound by the number of tensor operations, and making a tensor costs several).
+    ``values``: nested sequences or a tensor, or a function returning them (called only when
+    the table is made)."""
     full_key = (key, dtype, device)
     table = _TABLES.get(full_key)
     if table is None:
         with _inference.outside():  # a normal tensor, usable after an inference-mode solve
-            table = torch.tensor(values, dtype=dtype, device=device)
+            table = torch.as_tensor(
+                values() if callable(values) else values, dtype=dtype, device=device
+            )
         # Cache plain tensors only (a few tables × dtypes × devices): not an inference tensor
         # (inference_mode) nor a fake one (FakeTensorMode), which later calls could not use.
         if type(table) is torch.Tensor and not table.is_inference():
@@ -94,11 +98,7 @@ def _rows(key: tuple, series: tuple, dtype: torch.dtype, device: torch.device) -
 def eye(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """``torch.eye(n, dtype, device)`` made once per (n, dtype, device) (:func:`constant`);
     shared: never write to it."""
-    table = _TABLES.get((("eye", n), dtype, device))  # before building the values (hot path)
-    if table is not None:
-        return table
-    identity = tuple(tuple(float(i == j) for j in range(n)) for i in range(n))
-    return constant(("eye", n), identity, dtype, device)
+    return constant(("eye", n), lambda: torch.eye(n, dtype=torch.float64), dtype, device)
 
 
 def _horner_stack(x: Tensor, *series: list[float]) -> tuple[Tensor, ...]:

@@ -42,7 +42,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchslam import _inference
 from torchslam.lie import _series
 from torchslam.lie.so3 import hat
 from torchslam.objective.data import PointMapData
@@ -592,19 +591,26 @@ class LinearPlan:
             return self.reduced.factor(self._upper(U, lin), points_part)
         return _DenseCholesky.of(DenseReduced.add_diagonal(points_part, U))
 
+    def _kept(self, name: str, compute):
+        """``compute()`` made once per plan, kept under ``name``."""
+        value = self._cache.get(name)
+        if value is None:
+            value = self._cache[name] = compute()
+        return value
+
     def _edge_slots(self) -> tuple[Tensor, Tensor]:
         """Flat pose slot b·m + i and point slot b·n + j of every coupling edge, (B·E',);
         made once per plan."""
-        slots = self._cache.get("edges")
-        if slots is None:
+
+        def compute() -> tuple[Tensor, Tensor]:
             B, m, n = self.shape
             batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
-            slots = (
+            return (
                 (batch * m + self.edges.pose_index).reshape(-1),
                 (batch * n + self.edges.point_index).reshape(-1),
             )
-            self._cache["edges"] = slots
-        return slots
+
+        return self._kept("edges", compute)
 
     def _point_inverse(self, lin: BlockLinearization, lam: Tensor) -> tuple[Tensor, Tensor]:
         """(V⁻¹ (B, n, 3, 3), ok (B,)) of the damped point blocks, through the Cholesky factor
@@ -637,8 +643,7 @@ class LinearPlan:
         them out as the matrix.
         """
         B, m, n = self.shape
-        pose_index, point_index = self.edges.pose_index, self.edges.point_index
-        batch = torch.arange(B, device=v_d.device)[:, None]
+        point_index = self.edges.point_index
         # (B, 4, n) contiguous, so that P below comes out contiguous (B, 4, m, c)
         scale = v_d.rsqrt()[..., None]
         s = torch.cat((scale, lin.points * scale), -1).transpose(1, 2).contiguous()
@@ -657,7 +662,7 @@ class LinearPlan:
                 values = torch.where(inside, weight, torch.zeros_like(weight))
                 local = (point_index - start).clamp(0, c - 1)
                 A = v_d.new_zeros(B * m * c).index_add_(
-                    0, ((batch * m + pose_index) * c + local).reshape(-1), values.reshape(-1)
+                    0, self._edge_slots()[0] * c + local.reshape(-1), values.reshape(-1)
                 )
             P = A.reshape(B, 1, m, c) * s[:, :, None, start : start + c]
             if small:  # one product P Pᵀ of all 16 pairs (few operations)
@@ -680,13 +685,11 @@ class LinearPlan:
     def _covisibility_slots(self) -> Tensor:
         """(b·m + i)·n + j of every coupling edge (pose i, point j), (B·E',): its entry of the
         (B, m, n) co-visibility matrix of :meth:`_monomial_products`; made once per plan."""
-        slots = self._cache.get("covisibility")
-        if slots is None:
-            B, m, n = self.shape
-            batch = torch.arange(B, device=self.edges.pose_index.device)[:, None]
-            slots = ((batch * m + self.edges.pose_index) * n + self.edges.point_index).reshape(-1)
-            self._cache["covisibility"] = slots
-        return slots
+        n = self.shape[2]
+        return self._kept(
+            "covisibility",
+            lambda: self._edge_slots()[0] * n + self.edges.point_index.reshape(-1),
+        )
 
     def _factorize_full(self, lin: BlockLinearization, lam: Tensor) -> Factorization:
         """The full (6m + 3n)² system — small problems and cross-checks only. Assembled by
@@ -725,9 +728,6 @@ class LinearPlan:
         return Factorization(_DenseCholesky.of(H), None, None, self.shape)
 
 
-_SELECTION: dict[tuple[torch.dtype, torch.device], Tensor] = {}
-
-
 def _monomial_selection(
     dtype: torch.dtype, device: torch.device, all_pairs: bool = False
 ) -> Tensor:
@@ -739,11 +739,8 @@ def _monomial_selection(
 
     ``all_pairs``: (36, 16) instead, for the 16 products P_b P_aᵀ in the order 4b + a, of
     which those with b ≥ a are the 10 sums above (the others get zero columns)."""
-    key = (dtype, device, all_pairs)
-    if key not in _SELECTION:
-        with _inference.outside():  # kept: a normal tensor, even made in a solve
-            _SELECTION[key] = _selection_matrix(all_pairs).to(dtype=dtype, device=device)
-    return _SELECTION[key]
+    key = ("monomial selection", all_pairs)
+    return _series.constant(key, lambda: _selection_matrix(all_pairs), dtype, device)
 
 
 def _selection_matrix(all_pairs: bool) -> Tensor:
