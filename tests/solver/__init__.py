@@ -111,6 +111,7 @@ def problem_from(
     weights: Tensor | None = None,
     fixed_points: Tensor | None = None,
     loss: object | None = None,
+    terms: tuple = (),
 ) -> torchslam.PointMapProblem:
     """A :class:`PointMapProblem` on the scene's observations starting at (poses, points)."""
     return torchslam.PointMapProblem(
@@ -123,6 +124,7 @@ def problem_from(
         weights=weights,
         fixed_points=fixed_points,
         loss=loss,
+        terms=terms,
     )
 
 

@@ -53,15 +53,7 @@ def test_caches_made_in_a_no_grad_solve_serve_a_later_autograd_solve():
     same data and terms: the caches must be normal tensors for the backward to save them."""
     scene, init = drifted(5, 30, batch_size=2)
     term = _relative_terms(init, 2)
-    problem = torchslam.PointMapProblem(
-        init.poses,
-        init.points,
-        scene.pose_index,
-        scene.point_index,
-        scene.observations,
-        valid=scene.valid,
-        terms=[term],
-    )
+    problem = problem_from(scene, init.poses, init.points, terms=(term,))
     xi0, X0 = problem.pose_tangent.detach().clone(), problem.points.detach().clone()
     first = torchslam.solve_tensors(xi0, X0, problem.data)
     data = problem.data

@@ -98,9 +98,15 @@ class State:
     @functools.cached_property
     def xi(self) -> Tensor:
         """The twists ξ (B, m, 6) of the iterate."""
-        if not bool(self.moved.any()):
-            return self.start
-        return torch.where(self.moved[..., None], se3._log(self.poses), self.start)
+        return _twists(self.start, self.poses, self.moved)
+
+
+def _twists(start: Tensor, poses: Tensor, moved: Tensor) -> Tensor:
+    """ξ = Log(T) of the poses (B, m, 4, 4) that moved (``moved`` (B, m)), ``start`` (B, m, 6)
+    bit for bit on the others."""
+    if not bool(moved.any()):
+        return start
+    return torch.where(moved[..., None], se3._log(poses), start)
 
 
 def _finite(x: Tensor) -> Tensor:
@@ -280,7 +286,7 @@ def iterate(
             x_norm = _norm_bound(start_square, T.detach(), moved, X.detach())
             tolerance = config.parameter_tolerance
             if bool((step_norm <= tolerance * (x_norm + tolerance)).any()):
-                xi = torch.where(moved[..., None], se3._log(T.detach()), s.start.detach())
+                xi = _twists(s.start.detach(), T.detach(), moved)
                 x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
             old_cost, new_cost = cost.detach(), lin_new.cost.detach()
             finite = _finite(new_cost) & _finite(step_norm)
