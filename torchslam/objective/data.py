@@ -205,10 +205,7 @@ class PointMapData:
         and w·both, each (B, E) of ``dtype``. Kept per dtype."""
 
         def compute() -> tuple[Tensor, Tensor, Tensor, Tensor]:
-            free_pose, free_point = self.observation_masks()
-            w = self.valid.to(dtype)
-            w_pose = w * free_pose
-            return w, w_pose, w * free_point, w_pose * free_point
+            return weight_products(self.valid.to(dtype), *self.observation_masks())
 
         sources = (
             self.valid,
@@ -277,6 +274,15 @@ class PointMapData:
 
 # ------------------------------------------------------------------------------------------
 # Functional forms (used by the solver, which works on plain tensors)
+
+
+def weight_products(
+    w: Tensor, free_pose: Tensor, free_point: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(w, w·free pose, w·free point, w·both) of per-observation weights and the free masks
+    of :meth:`PointMapData.observation_masks`, each (B, E)."""
+    w_pose = w * free_pose
+    return w, w_pose, w * free_point, w_pose * free_point
 
 
 def per_observation(values: Tensor, flat_index: Tensor) -> Tensor:

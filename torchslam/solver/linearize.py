@@ -55,6 +55,7 @@ from torchslam.objective.data import (
     PointMapData,
     gather_points,
     per_observation,
+    weight_products,
 )
 from torchslam.objective.terms import (
     Term,
@@ -351,8 +352,7 @@ def _linearize_points(poses, points, data, factor, jacobian_mode, structured):
                 products = (w, *(rho1 * p for p in products[1:]))
         if isotropic:
             if products is None:
-                w_pose = w * free_pose
-                products = (w, w_pose, w * free_point, w_pose * free_point)
+                products = weight_products(w, free_pose, free_point)
             return _structured(r, T_e, X_e, points, products, cost, free_pose, free_point, data)
 
     if jacobian_mode == "analytic":
