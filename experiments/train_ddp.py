@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import gc
 import json
 import math
 import os
@@ -295,6 +296,12 @@ def main() -> int:
         path.write_text(json.dumps(summary, indent=2))
         log(f"wrote {path} ({time.perf_counter() - t_start:.0f} s in all)")
     if env.distributed:
+        # Leave cleanly: DDP's reducer (which holds the group) released first, then a barrier
+        # so that no process tears down its gloo pairs while another still has a message in
+        # flight (without it a rank could abort at exit), then destroy.
+        del ddp
+        gc.collect()
+        dist.barrier()
         dist.destroy_process_group()
     return 0
 

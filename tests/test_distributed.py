@@ -2,15 +2,15 @@
 
 Each process solves its half of a batch of 4 scenes through ``solve_differentiable`` (implicit
 backward) inside a ``DistributedDataParallel`` module; the gradient DDP all-reduces must equal
-the gradient of the whole batch solved in one process. The processes are spawned with a free
-localhost port and joined with a deadline, so a broken rendezvous fails the test instead of
-hanging it.
+the gradient of the whole batch solved in one process. The processes are spawned with a
+file-store rendezvous, leave through a barrier and are joined with a deadline, so a broken
+rendezvous fails the test instead of hanging it.
 """
 
 from __future__ import annotations
 
 import datetime
-import socket
+import gc
 import time
 import traceback
 from pathlib import Path
@@ -96,13 +96,15 @@ def _gradient(module: nn.Module) -> Tensor:
     return torch.cat([p.grad.flatten() for p in module.parameters()])
 
 
-def _worker(rank: int, port: int, out: str) -> None:
+def _worker(rank: int, out: str) -> None:
     """One process: join the group, solve its shard through DDP, save the reduced gradient."""
     torch.set_num_threads(1)
     try:
         dist.init_process_group(
             "gloo",
-            init_method=f"tcp://127.0.0.1:{port}",
+            # A file store in the test's folder: no port to race for, and no store server
+            # in rank 0 that the other process would still need while rank 0 exits.
+            init_method=(Path(out) / "rendezvous").as_uri(),
             rank=rank,
             world_size=WORLD,
             timeout=datetime.timedelta(seconds=60),
@@ -112,30 +114,34 @@ def _worker(rank: int, port: int, out: str) -> None:
             shard = torch.arange(BATCH).tensor_split(WORLD)[rank]
             model(shard).backward()  # DDP averages the gradients over the 2 processes
             torch.save(_gradient(model.module), Path(out) / f"rank{rank}.pt")
+            # DDP's reducer holds the process group: released here, not at interpreter exit,
+            # where gloo's threads would be torn down by static destructors (an abort).
+            del model
+            gc.collect()
         finally:
-            dist.destroy_process_group()
+            _shutdown()
     except BaseException:
         (Path(out) / f"rank{rank}.err").write_text(traceback.format_exc())
         raise
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+def _shutdown() -> None:
+    """Leave the group cleanly: a barrier first, so that neither process tears down its gloo
+    pairs while the other still has a message in flight (without it rank 1 aborted at exit,
+    "terminate called without an active exception", about one run in six), then destroy."""
+    try:
+        dist.barrier()
+    finally:
+        dist.destroy_process_group()
 
 
 def _run_workers(out: Path, monkeypatch) -> None:
-    # The children read their environment at start: one thread each, the rendezvous address.
+    # The children read their environment at start: one thread each.
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         monkeypatch.setenv(name, "1")
-    port = _free_port()
-    monkeypatch.setenv("MASTER_ADDR", "127.0.0.1")
-    monkeypatch.setenv("MASTER_PORT", str(port))
     context = mp.get_context("spawn")
     workers = [
-        context.Process(target=_worker, args=(rank, port, str(out)), daemon=True)
-        for rank in range(WORLD)
+        context.Process(target=_worker, args=(rank, str(out)), daemon=True) for rank in range(WORLD)
     ]
     for w in workers:
         w.start()
