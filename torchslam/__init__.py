@@ -47,6 +47,7 @@ _LAZY = (
     "posegraph",
     "register",
     "registration",
+    "slam",
     "terms",
     "tracks",
 )
@@ -95,6 +96,7 @@ __all__ = [
     "posegraph",
     "registration",
     "se3",
+    "slam",
     "so3",
     "solve",
     "solve_differentiable",

@@ -1,8 +1,9 @@
 """The ``torchslam`` command: a thin argparse front end over the library.
 
 Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure),
-``bench`` (the solver benchmark), ``posegraph`` (optimize a g2o pose graph) and ``register``
-(multiview registration of range scans).
+``bench`` (the solver benchmark), ``posegraph`` (optimize a g2o pose graph), ``register``
+(multiview registration of range scans) and ``slam`` (ICP-SLAM on a sequence of depth images or
+LiDAR scans).
 
 Options of every subcommand (and of ``torchslam`` itself): ``--quiet`` (only warnings and
 errors, on stderr), ``--verbose`` (also the library's log records: loggers
@@ -35,7 +36,8 @@ explicitly and stops with status 2 before solving.
 
 Layout: this module holds the parser, the shared option types and the exit-status rules; each
 subcommand has its module (:mod:`~torchslam.cli.demo`, :mod:`~torchslam.cli.bench`,
-:mod:`~torchslam.cli.posegraph`, :mod:`~torchslam.cli.register`: options, ``run``), and
+:mod:`~torchslam.cli.posegraph`, :mod:`~torchslam.cli.register`, :mod:`~torchslam.cli.slam`:
+options, ``run``), and
 :mod:`~torchslam.cli.plots` draws every figure (matplotlib, imported lazily).
 """
 
@@ -220,6 +222,7 @@ def _parser() -> Parser:
     from torchslam.cli import demo as demo_command
     from torchslam.cli import posegraph as posegraph_command
     from torchslam.cli import register as register_command
+    from torchslam.cli import slam as slam_command
 
     demo_command.add_arguments(demo)
     add_common_options(demo)
@@ -253,6 +256,18 @@ def _parser() -> Parser:
     )
     register_command.add_arguments(register)
     add_common_options(register)
+
+    slam = sub.add_parser(
+        "slam",
+        help="ICP-SLAM on a folder of depth images or LiDAR scans",
+        description="Frame-to-model point-to-plane odometry, keyframes, ICP-verified loop "
+        "closures and a pose graph over the keyframes, on a folder of frames (depth .png, or "
+        ".pcd/.bin/.ply/.npy LiDAR scans, sorted by name). Writes trajectory_tum.txt, "
+        "trajectory_kitti.txt (frame → world), map.ply and slam.png; with --reference, "
+        "prints ATE and RPE.",
+    )
+    slam_command.add_arguments(slam)
+    add_common_options(slam)
     return parser
 
 
@@ -348,6 +363,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             result = posegraph.run_posegraph(posegraph.options_from_args(args), echo=echo)
             return solve_exit_status([result.status], warn)
+        if args.command == "slam":
+            from torchslam.cli import slam
+
+            return slam.run(args, echo=echo, warn=warn)
         from torchslam.cli import register
 
         return register.run(args, echo=echo, warn=warn)

@@ -7,7 +7,8 @@ includes it). The library never needs it; only the figures of ``torchslam demo``
 importing this module never needs matplotlib.
 
 Figures: :func:`plot_demo` (``demo``), :func:`plot_bench` (``bench``),
-:func:`plot_trajectories` (``posegraph --plot``), :func:`plot_registration` (``register``).
+:func:`plot_trajectories` (``posegraph --plot``), :func:`plot_registration` (``register``),
+:func:`plot_slam` (``slam``).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ if TYPE_CHECKING:
     from torchslam.posegraph.graph import PoseGraph
     from torchslam.posegraph.solve import PoseGraphSolveResult
     from torchslam.registration.pipeline import Registration
+    from torchslam.slam.pipeline import SLAMResult
     from torchslam.solver import SolveResult
 
 __all__ = [
@@ -40,6 +42,7 @@ __all__ = [
     "plot_bench",
     "plot_demo",
     "plot_registration",
+    "plot_slam",
     "plot_trajectories",
     "require_matplotlib",
     "require_pyplot",
@@ -437,3 +440,45 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def plot_slam(result: SLAMResult, path: str | os.PathLike, max_points: int = 200_000) -> None:
+    """Top view of a SLAM run: the map (grey), the trajectory of every frame, the keyframes and
+    the accepted loop closures (red segments between their keyframes).
+
+    "Top" drops the world axis along which the trajectory varies least (z for a walking or
+    driving LiDAR, y for a depth camera held upright, whose y points down).
+    """
+    plt = require_pyplot()
+    positions = result.poses[:, :3, 3].detach().cpu().numpy()
+    keyframes = result.keyframe_poses[:, :3, 3].detach().cpu().numpy()
+    up = int(np.argmin(np.ptp(positions, axis=0))) if len(positions) > 1 else 2
+    a, b = [axis for axis in range(3) if axis != up]
+    figure, ax = plt.subplots(figsize=(8, 8))
+    cloud = result.map_points().detach().cpu().numpy()
+    if len(cloud) > max_points:
+        cloud = cloud[np.random.default_rng(0).choice(len(cloud), max_points, replace=False)]
+    ax.scatter(cloud[:, a], cloud[:, b], s=0.2, c="0.6", linewidths=0, label="map")
+    if result.odometry_poses is not None and result.loops:
+        odometry = result.odometry_poses[:, :3, 3].detach().cpu().numpy()
+        ax.plot(odometry[:, a], odometry[:, b], color="tab:orange", lw=1, label="odometry")
+    ax.plot(positions[:, a], positions[:, b], color="tab:blue", lw=1.5, label="trajectory")
+    ax.scatter(keyframes[:, a], keyframes[:, b], s=6, color="tab:blue", zorder=3)
+    for k, closure in enumerate(result.accepted_loops):
+        p, q = keyframes[closure.first], keyframes[closure.second]
+        ax.plot(
+            [p[a], q[a]], [p[b], q[b]], color="tab:red", lw=1.2,
+            label="loop closure" if k == 0 else None, zorder=4,
+        )  # fmt: skip
+    names = "xyz"
+    ax.set_xlabel(f"{names[a]} (m)")
+    ax.set_ylabel(f"{names[b]} (m)")
+    ax.set_aspect("equal")
+    ax.set_title(
+        f"{result.num_frames} frames, {len(result.keyframe_frames)} keyframes, "
+        f"{len(result.accepted_loops)} loop closures"
+    )
+    ax.legend(loc="best", markerscale=10)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)

@@ -1,7 +1,9 @@
-"""File formats: PLY point clouds (``ply``), Stanford scan alignments (``stanford``) and pose
+"""File formats: PLY point clouds (``ply``), range-sensor frames (``frames``: depth images,
+PCD/KITTI/NPY/XYZ clouds, sequence folders), Stanford scan alignments (``stanford``) and pose
 files (``trajectories``)."""
 
-from torchslam.io import ply, stanford, trajectories
+from torchslam.io import frames, ply, stanford, trajectories
+from torchslam.io.frames import list_frames, read_depth, read_intrinsics, read_points
 from torchslam.io.ply import PlyData, PlyElement, PlyProperty, read_ply, read_ply_points, write_ply
 from torchslam.io.stanford import read_conf
 from torchslam.io.trajectories import read_poses, write_poses
@@ -10,10 +12,15 @@ __all__ = [
     "PlyData",
     "PlyElement",
     "PlyProperty",
+    "frames",
+    "list_frames",
     "ply",
     "read_conf",
+    "read_depth",
+    "read_intrinsics",
     "read_ply",
     "read_ply_points",
+    "read_points",
     "read_poses",
     "stanford",
     "trajectories",

@@ -5,6 +5,8 @@ Modules, from the ground up:
 - :mod:`~torchslam.registration.neighbors`: voxel grids, nearest neighbours, PCA normals;
 - :mod:`~torchslam.registration.icp`: pairwise ICP (point-to-point, point-to-plane),
   multistart, coarse to fine, pose chaining;
+- :mod:`~torchslam.registration.quality`: whether an alignment can be trusted (overlap,
+  residual RMS, conditioning of its normal equations) and its information matrix;
 - :mod:`~torchslam.registration.tracks`: point tracks across scans (the data association);
 - :mod:`~torchslam.registration.config`: :class:`RegisterConfig`, :func:`default_stages`;
 - :mod:`~torchslam.registration.pipeline`: :func:`register` (scans in any order and unit:
@@ -17,7 +19,16 @@ Pose files are in :mod:`torchslam.io.trajectories`; the command ``torchslam regi
 its figure in :mod:`torchslam.cli.register` and :mod:`torchslam.cli.plots`.
 """
 
-from torchslam.registration import config, conventions, icp, neighbors, pipeline, report, tracks
+from torchslam.registration import (
+    config,
+    conventions,
+    icp,
+    neighbors,
+    pipeline,
+    quality,
+    report,
+    tracks,
+)
 from torchslam.registration.config import (
     RegisterConfig,
     ScanScale,
@@ -46,17 +57,25 @@ from torchslam.registration.pipeline import (
     register_chain,
     register_tree,
 )
+from torchslam.registration.quality import (
+    AlignmentQuality,
+    QualityThresholds,
+    alignment_quality,
+)
 from torchslam.registration.report import alignment_residual, error_table, plane_distances
 
 __all__ = [
+    "AlignmentQuality",
     "ChainResult",
     "InvertedPosesWarning",
     "PoseDirectionCheck",
+    "QualityThresholds",
     "RefineResult",
     "RegisterConfig",
     "Registration",
     "RoundInfo",
     "ScanScale",
+    "alignment_quality",
     "alignment_residual",
     "auto_voxel_size",
     "boundary_mask",
@@ -74,6 +93,7 @@ __all__ = [
     "overlapping_pairs",
     "pipeline",
     "plane_distances",
+    "quality",
     "refine",
     "register",
     "register_chain",

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
@@ -442,14 +443,17 @@ def _run(
     initial: Tensor,
     config: ICPConfig,
     target_normals: Tensor | None,
+    tree: cKDTree | None = None,
 ) -> ICPResult:
-    """The ICP loop on checked arguments; an empty batch gives an empty result."""
+    """The ICP loop on checked arguments; an empty batch gives an empty result. ``tree``: a
+    KD-tree of ``target`` built earlier (a local map registered against frame after frame);
+    built here when None."""
     if initial.shape[0] == 0:
         empty = source.new_zeros(0)
         none = torch.zeros(0, dtype=torch.int64)
         return ICPResult(initial.clone(), empty, empty, empty, none, none, source.new_zeros(1, 0))
     with _checks.validation(False), _host_threads():
-        return _icp_loop(fn, source, target, initial, config, target_normals)
+        return _icp_loop(fn, source, target, initial, config, target_normals, tree)
 
 
 @contextlib.contextmanager
@@ -478,6 +482,7 @@ def _icp_loop(
     initial: Tensor,
     config: ICPConfig,
     target_normals: Tensor | None,
+    tree: cKDTree | None = None,
 ) -> ICPResult:
     """One pass per iteration: nearest neighbours (KD-tree lookups on :func:`query_workers`
     threads for the points not certain to keep theirs, :class:`_Matcher`) for the runs still
@@ -486,7 +491,9 @@ def _icp_loop(
     query)."""
     batch = initial.shape[0]
     n = source.shape[0]
-    matcher = _Matcher(_tree(fn, "target", target), _host(fn, "target", target), batch, n)
+    if tree is None:
+        tree = _tree(fn, "target", target)
+    matcher = _Matcher(tree, _host(fn, "target", target), batch, n)
     T = initial.clone()
     infinite = math.inf if config.max_distance is None else config.max_distance
     gate = source.new_full((batch,), infinite)

@@ -1,0 +1,193 @@
+"""Options of the sequence pipeline (:mod:`torchslam.slam`), with defaults per sensor.
+
+Distances are metres. ``SLAMConfig.for_sensor("depth")`` suits a hand-held depth camera
+(Kinect-like: 0.2–4 m, 30 Hz, small motions between frames); ``for_sensor("lidar")`` a LiDAR
+(keyframe scans of a few thousand points, ranges up to tens of metres, 10 Hz).
+``dataclasses.replace`` (or keyword overrides of :meth:`SLAMConfig.for_sensor`) changes any of
+them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+from torchslam import _checks
+
+__all__ = ["SENSORS", "SLAMConfig"]
+
+SENSORS = ("depth", "lidar")
+
+
+@dataclass(frozen=True)
+class SLAMConfig:
+    """Options of :class:`torchslam.slam.Odometry` and :class:`torchslam.slam.SLAM`."""
+
+    sensor: Literal["depth", "lidar"] = "lidar"
+    # --- frames
+    # voxel pitch of the downsampled frame, the local map and the keyframe clouds
+    voxel: float = 0.25
+    # points nearer than min_range or farther than max_range (from the sensor) are dropped
+    min_range: float = 0.5
+    # depth images read by run_sequence / the CLI: every pixel_stride-th row and column is
+    # back-projected (the voxel grid keeps one point per cell anyway: at 2 m a Kinect pixel is
+    # 3.4 mm, so a stride of 4 still leaves ~3 samples across a 4 cm voxel)
+    pixel_stride: int = 1
+    max_range: float = 60.0
+    # --- odometry (frame-to-model point-to-plane ICP against the local map)
+    # correspondence gate before the motion statistics exist; then 3σ of the prediction error
+    initial_gate: float = 1.5
+    # pose prediction: "constant_velocity" (T_(k−1)·(T_(k−2)⁻¹ T_(k−1))) or "previous" (T_(k−1))
+    prediction: Literal["constant_velocity", "previous"] = "constant_velocity"
+    # the adaptive gate stays within [min_gate_voxels · voxel, max_gate]
+    min_gate_voxels: float = 1.0
+    max_gate: float = 3.0
+    # scale of the Cauchy kernel on the point-to-plane distances: this fraction of the gate
+    kernel_fraction: float = 1.0 / 3.0
+    # prediction errors below this (metres, at the lever arm) are not counted in σ
+    min_motion: float = 0.02
+    # iteration cap and the step tolerances of the ICP
+    icp_iterations: int = 30
+    # the local map: the newest map_keyframes keyframes within map_radius of the sensor
+    map_keyframes: int = 20
+    map_radius: float = 60.0
+    # normals of a keyframe cloud: PCA over this many neighbours
+    normal_neighbors: int = 10
+    # an alignment is trusted when its overlap, RMS and conditioning pass these
+    min_fitness: float = 0.3
+    max_rms_voxels: float = 1.0
+    min_condition: float = 1e-3
+    # --- keyframes: a new one when the motion since the last exceeds either
+    keyframe_translation: float = 0.2
+    keyframe_rotation_deg: float = 5.0
+    # --- loop closure
+    loops: bool = True
+    # candidates: an earlier keyframe within loop_radius (positions) ...
+    loop_radius: float = 5.0
+    # ... at least loop_min_gap keyframes and loop_min_path metres of travel before
+    loop_min_gap: int = 30
+    loop_min_path: float = 10.0
+    # the candidate's submap: its keyframes ± loop_window
+    loop_window: int = 3
+    # verification ICP: initial gate (then shrinks), acceptance thresholds
+    loop_gate: float = 2.0
+    loop_min_fitness: float = 0.3
+    loop_max_rms_voxels: float = 0.6
+    # at most this many verifications per new keyframe
+    loop_candidates: int = 1
+    # a keyframe does not look for a loop within loop_cooldown keyframes of an accepted one
+    loop_cooldown: int = 5
+    # --- back end
+    # ICP information is scaled by effective_points / inliers (neighbouring points' errors
+    # are correlated; the raw JᵀJ/σ² would claim thousands of independent measurements)
+    effective_points: float = 100.0
+    # loop edges carry a Cauchy kernel of this scale (in whitened units, √χ²)
+    loop_kernel_scale: float = 3.0
+    # after the robust solve, loop edges with χ² above this are dropped and the graph solved
+    # again
+    loop_max_chi2: float = 200.0
+    # rounds of the joint multiview ICP-SLAM refinement of the keyframes (poses and points, the
+    # seed's problem) after the pose graph; 0 (default): none. One round on hku2-loop's 266
+    # keyframes takes ~75 s (2 threads) for a few centimetres of ATE, so it is opt-in.
+    refine_rounds: int = 0
+    # keyframe pairs matched by the refinement: neighbours up to this index gap, plus loops
+    refine_neighbors: int = 2
+
+    def __post_init__(self) -> None:
+        fn = "SLAMConfig"
+        if not isinstance(self.sensor, str) or self.sensor not in SENSORS:
+            raise ValueError(
+                f"{fn}: argument 'sensor' must be 'depth' or 'lidar', got "
+                f"{_checks.describe(self.sensor)}"
+            )
+        if self.prediction not in ("constant_velocity", "previous"):
+            raise ValueError(
+                f"{fn}: argument 'prediction' must be 'constant_velocity' or 'previous', got "
+                f"{_checks.describe(self.prediction)}"
+            )
+        positive = (
+            "voxel",
+            "max_range",
+            "initial_gate",
+            "max_gate",
+            "kernel_fraction",
+            "map_radius",
+            "loop_radius",
+            "loop_gate",
+            "effective_points",
+            "loop_kernel_scale",
+            "loop_max_chi2",
+            "max_rms_voxels",
+            "loop_max_rms_voxels",
+        )
+        for name in positive:
+            _checks.check_real(fn, name, getattr(self, name), low=0.0, low_open=True)
+        for name in (
+            "min_range",
+            "min_gate_voxels",
+            "min_motion",
+            "keyframe_translation",
+            "keyframe_rotation_deg",
+            "loop_min_path",
+        ):
+            _checks.check_real(fn, name, getattr(self, name), low=0.0)
+        for name in ("min_fitness", "min_condition", "loop_min_fitness"):
+            _checks.check_real(fn, name, getattr(self, name), low=0.0, high=1.0)
+        if self.min_range >= self.max_range:
+            raise ValueError(
+                f"{fn}: 'min_range' ({self.min_range:g}) must be below 'max_range' "
+                f"({self.max_range:g})"
+            )
+        for name, low in (
+            ("pixel_stride", 1),
+            ("icp_iterations", 1),
+            ("map_keyframes", 1),
+            ("normal_neighbors", 3),
+            ("loop_min_gap", 1),
+            ("loop_window", 0),
+            ("loop_candidates", 0),
+            ("loop_cooldown", 0),
+            ("refine_rounds", 0),
+            ("refine_neighbors", 1),
+        ):
+            _checks.check_int(fn, name, getattr(self, name), minimum=low)
+        if not isinstance(self.loops, bool):
+            raise TypeError(
+                f"{fn}: argument 'loops' must be a bool, got {_checks.describe(self.loops)}"
+            )
+
+    @classmethod
+    def for_sensor(cls, sensor: str, **overrides: object) -> SLAMConfig:
+        """The defaults of ``sensor`` ("depth" or "lidar"), with ``overrides`` applied."""
+        if not isinstance(sensor, str) or sensor not in _DEFAULTS:
+            raise ValueError(
+                f"SLAMConfig.for_sensor: argument 'sensor' must be 'depth' or 'lidar', got "
+                f"{_checks.describe(sensor)}"
+            )
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise TypeError(f"SLAMConfig.for_sensor: unknown option(s) {', '.join(unknown)}")
+        return cls(sensor=sensor, **{**_DEFAULTS[sensor], **overrides})  # type: ignore[arg-type]
+
+
+_DEFAULTS: dict[str, dict[str, object]] = {
+    "depth": {
+        "voxel": 0.04,
+        "pixel_stride": 4,
+        "min_range": 0.2,
+        "max_range": 4.0,
+        "initial_gate": 0.3,
+        "max_gate": 0.3,
+        "min_motion": 0.005,
+        "map_radius": 6.0,
+        "keyframe_translation": 0.08,
+        "keyframe_rotation_deg": 5.0,
+        "loop_radius": 0.6,
+        "loop_min_gap": 20,
+        "loop_min_path": 1.0,
+        "loop_gate": 0.3,
+    },
+    "lidar": {},
+}

@@ -1,0 +1,376 @@
+"""Frame-to-model odometry of a moving range sensor (depth camera or LiDAR).
+
+For each frame (points in the sensor frame):
+
+1. points nearer than ``min_range`` or farther than ``max_range`` are dropped, the rest
+   voxel-downsampled (``voxel``);
+2. the pose is predicted at constant velocity, T̂_k = T_(k−1)·(T_(k−2)⁻¹ T_(k−1));
+3. point-to-plane ICP (:mod:`torchslam.registration.icp`, the library's one ICP loop, with a
+   Cauchy kernel) registers the frame against the local map (:class:`LocalMap`, the newest
+   keyframes' clouds and normals near the sensor), from T̂_k, with a correspondence gate that
+   follows the observed motion: 3σ of the past prediction errors, each measured as the
+   RMS displacement of the frame's points between the prediction and the estimate (the
+   adaptive threshold of KISS-ICP, measured on the points instead of at a lever arm);
+4. the alignment is judged (:func:`torchslam.registration.quality.alignment_quality`:
+   overlap and residual RMS of the correspondences within 3 voxels, conditioning). An
+   untrusted one is retried with a 3× wider gate from the prediction and from the last pose
+   (zero velocity); when no attempt is trusted the frame
+   is marked ``UNRELIABLE`` (its pose the best attempt's) and never becomes a keyframe;
+5. a frame becomes a keyframe when it moved more than ``keyframe_translation`` or turned
+   more than ``keyframe_rotation_deg`` since the last keyframe; keyframes enter the local map
+   and the back end (:class:`torchslam.slam.SLAM`).
+
+Poses are **frame → world** (T_wk maps points of frame k into the world; frame 0 is the world),
+as TUM and KITTI trajectory files hold them.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchslam import _checks
+from torchslam.lie import se3, so3
+from torchslam.registration import icp as _icp
+from torchslam.registration.neighbors import _downsample, _normals
+from torchslam.registration.quality import (
+    AlignmentQuality,
+    QualityThresholds,
+    alignment_quality,
+)
+from torchslam.slam.config import SLAMConfig
+from torchslam.slam.local_map import LocalMap
+
+__all__ = ["FrameInfo", "FrameStatus", "Keyframe", "Odometry"]
+
+# Fewer points than this after range cropping and downsampling: the frame is not registered.
+MIN_POINTS = 20
+# An alignment is judged on the correspondences within this many voxels (whatever the gate).
+JUDGE_VOXELS = 3.0
+
+
+class FrameStatus(enum.IntEnum):
+    """How a frame's pose was obtained."""
+
+    FIRST = 0  # the first frame: the world frame
+    TRACKED = 1  # trusted alignment at the adaptive gate
+    RETRIED = 2  # trusted only after a retry from a wider gate
+    UNRELIABLE = 3  # no trusted alignment: the best attempt's pose
+    FEW_POINTS = 4  # too few points to register: the predicted pose
+
+
+@dataclass
+class FrameInfo:
+    """What odometry did with one frame."""
+
+    index: int
+    timestamp: float | None
+    # T_wk, frame → world, (4, 4)
+    pose: Tensor
+    status: FrameStatus
+    is_keyframe: bool
+    # the keyframe (index into Odometry.keyframes) this frame's pose is attached to
+    anchor: int
+    # the trusted/chosen alignment's measures (NaN for FIRST / FEW_POINTS)
+    fitness: float
+    rms: float
+    condition: float
+    gate: float
+    iterations: int
+    # points after cropping and downsampling
+    points: int
+    # non-finite input points dropped
+    dropped: int
+    seconds: float
+    problem: str | None = None
+
+    @property
+    def trusted(self) -> bool:
+        return self.status in (FrameStatus.FIRST, FrameStatus.TRACKED, FrameStatus.RETRIED)
+
+
+@dataclass
+class Keyframe:
+    """A keyframe: its frame, odometry pose, cloud and normals (sensor frame)."""
+
+    frame: int
+    # T_wk from odometry, (4, 4)
+    pose: Tensor
+    points: Tensor
+    normals: Tensor
+    # information of the tracking alignment (6, 6), (ω, v), right perturbation, scaled
+    information: Tensor
+
+
+class _AdaptiveGate:
+    """3σ of the prediction errors (module docstring); ``initial`` before any is counted."""
+
+    def __init__(self, initial: float, minimum: float, maximum: float, min_motion: float) -> None:
+        self.initial, self.minimum, self.min_motion = initial, minimum, min_motion
+        self.maximum = maximum
+        self.sum_squares, self.count = 0.0, 0
+
+    def value(self) -> float:
+        if self.count == 0:
+            return self.initial
+        return min(max(3.0 * math.sqrt(self.sum_squares / self.count), self.minimum), self.maximum)
+
+    def update(self, prediction: Tensor, estimate: Tensor, source: Tensor) -> None:
+        deviation = se3.compose(se3.inverse(prediction), estimate)
+        moved = source @ deviation[:3, :3].T + deviation[:3, 3]
+        error = float((moved - source).square().sum(-1).mean().sqrt())
+        if error > self.min_motion:
+            self.sum_squares += error * error
+            self.count += 1
+
+
+def _angle_deg(T: Tensor) -> float:
+    cos = float((T[0, 0] + T[1, 1] + T[2, 2] - 1) / 2)
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+
+class Odometry:
+    """Streaming frame-to-model odometry (module docstring).
+
+    Args:
+        config: options; ``SLAMConfig.for_sensor(sensor)`` when None.
+        sensor: "depth" or "lidar", used when ``config`` is None (default "lidar").
+        on_keyframe: called with each new :class:`Keyframe` (the back end listens here).
+
+    Example::
+
+        odometry = Odometry(sensor="lidar")
+        for cloud in clouds:
+            T_wk = odometry.add(cloud)  # (4, 4), frame → world
+    """
+
+    def __init__(
+        self,
+        config: SLAMConfig | None = None,
+        *,
+        sensor: str | None = None,
+        on_keyframe: Callable[[Keyframe], None] | None = None,
+    ) -> None:
+        fn = "Odometry"
+        if config is None:
+            config = SLAMConfig.for_sensor("lidar" if sensor is None else sensor)
+        elif not isinstance(config, SLAMConfig):
+            raise TypeError(
+                f"{fn}: argument 'config' must be a SLAMConfig or None, got "
+                f"{_checks.describe(config)}"
+            )
+        elif sensor is not None and sensor != config.sensor:
+            raise ValueError(
+                f"{fn}: 'sensor' {sensor!r} contradicts config.sensor {config.sensor!r}"
+            )
+        if on_keyframe is not None and not callable(on_keyframe):
+            raise TypeError(f"{fn}: argument 'on_keyframe' must be callable or None")
+        self.config = config
+        self.on_keyframe = on_keyframe
+        self.frames: list[FrameInfo] = []
+        self.keyframes: list[Keyframe] = []
+        self.map = LocalMap(config.voxel, config.map_keyframes, config.map_radius)
+        self._gate = _AdaptiveGate(
+            config.initial_gate,
+            config.min_gate_voxels * config.voxel,
+            config.max_gate,
+            config.min_motion,
+        )
+        self._thresholds = QualityThresholds(
+            config.min_fitness, config.max_rms_voxels * config.voxel, config.min_condition
+        )
+        self._previous: Tensor | None = None  # T_w(k−2)
+        self._last: Tensor | None = None  # T_w(k−1)
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def poses(self) -> Tensor:
+        """T_wk of every frame so far, (F, 4, 4), frame → world (odometry, no back end)."""
+        if not self.frames:
+            return torch.zeros(0, 4, 4, dtype=torch.float64)
+        return torch.stack([f.pose for f in self.frames])
+
+    def add(self, points: object, timestamp: float | None = None) -> Tensor:
+        """Register the next frame; returns its pose T_wk (4, 4), frame → world.
+
+        Args:
+            points: the frame's points in the sensor frame, (N, 3), N ≥ 1 (a tensor or a numpy
+                array); non-finite rows are dropped (counted in :attr:`FrameInfo.dropped`).
+            timestamp: optional time of the frame (seconds), kept in :attr:`frames`.
+        """
+        fn = "Odometry.add"
+        tic = time.perf_counter()
+        cloud, dropped = self._check_points(fn, points)
+        if timestamp is not None:
+            timestamp = _checks.check_real(fn, "timestamp", timestamp)
+        index = len(self.frames)
+        source = self._preprocess(cloud)
+        cfg = self.config
+        if self._last is None:
+            pose = torch.eye(4, dtype=torch.float64)
+            if source.shape[0] < MIN_POINTS:
+                raise ValueError(
+                    f"{fn}: the first frame has {source.shape[0]} point(s) within "
+                    f"[{cfg.min_range:g}, {cfg.max_range:g}] m after downsampling; at least "
+                    f"{MIN_POINTS} are needed to start (check the units and max_range)"
+                )
+            info = FrameInfo(
+                index, timestamp, pose, FrameStatus.FIRST, True, 0, math.nan, math.nan,
+                math.nan, math.nan, 0, source.shape[0], dropped, 0.0,
+            )  # fmt: skip
+            information = torch.eye(6, dtype=torch.float64)
+            self._make_keyframe(info, source, information)
+            self._advance(pose)
+            info.seconds = time.perf_counter() - tic
+            self.frames.append(info)
+            return pose.clone()
+
+        prediction = self._predict()
+        anchor = len(self.keyframes) - 1
+        if source.shape[0] < MIN_POINTS:
+            info = FrameInfo(
+                index, timestamp, prediction, FrameStatus.FEW_POINTS, False, anchor, math.nan,
+                math.nan, math.nan, math.nan, 0, source.shape[0], dropped, 0.0,
+                f"{source.shape[0]} point(s) after cropping and downsampling",
+            )  # fmt: skip
+            self._advance(prediction)
+            info.seconds = time.perf_counter() - tic
+            self.frames.append(info)
+            return prediction.clone()
+
+        gate = self._gate.value()
+        with _checks.validation(False):
+            pose, quality, iterations, status = self._register(source, prediction, gate)
+        # ICP composes its increments: re-orthonormalize so that round-off cannot accumulate.
+        pose = se3.from_rotation_translation(so3.project(pose[:3, :3]), pose[:3, 3])
+        if status != FrameStatus.UNRELIABLE:
+            self._gate.update(prediction, pose, source)
+        info = FrameInfo(
+            index, timestamp, pose, status, False, anchor, quality.fitness, quality.rms,
+            quality.condition, gate, iterations, source.shape[0], dropped, 0.0, quality.problem,
+        )  # fmt: skip
+        if status != FrameStatus.UNRELIABLE and self._moved_enough(pose):
+            information = quality.information * (cfg.effective_points / max(quality.inliers, 1))
+            self._make_keyframe(info, source, information)
+        self._advance(pose)
+        info.seconds = time.perf_counter() - tic
+        self.frames.append(info)
+        return pose.clone()
+
+    # ------------------------------------------------------------------ steps
+
+    def _check_points(self, fn: str, points: object) -> tuple[Tensor, int]:
+        if isinstance(points, np.ndarray):
+            points = torch.from_numpy(np.ascontiguousarray(points))
+        if not isinstance(points, Tensor):
+            raise TypeError(
+                f"{fn}: argument 'points' must be a tensor or numpy array of shape (N, 3), got "
+                f"{_checks.describe(points)}"
+            )
+        if points.dim() != 2 or points.shape[-1] != 3:
+            raise ValueError(
+                f"{fn}: argument 'points' must have shape (N, 3), got {tuple(points.shape)}"
+            )
+        if not points.dtype.is_floating_point:
+            raise TypeError(f"{fn}: argument 'points' must be floating point, got {points.dtype}")
+        if points.shape[0] == 0:
+            raise ValueError(f"{fn}: argument 'points' is an empty frame (0 points)")
+        points = points.detach().to(device="cpu", dtype=torch.float64)
+        finite = torch.isfinite(points).all(-1)
+        dropped = int((~finite).sum())
+        if dropped:
+            points = points[finite]
+            if points.shape[0] == 0:
+                raise ValueError(f"{fn}: argument 'points' has no finite point ({dropped} NaN/Inf)")
+        return points, dropped
+
+    def _preprocess(self, cloud: Tensor) -> Tensor:
+        cfg = self.config
+        ranges = torch.linalg.vector_norm(cloud, dim=-1)
+        kept = cloud[(ranges >= cfg.min_range) & (ranges <= cfg.max_range)]
+        return _downsample("Odometry.add", kept, cfg.voxel)
+
+    def _predict(self) -> Tensor:
+        assert self._last is not None
+        if self._previous is None or self.config.prediction == "previous":
+            return self._last.clone()
+        velocity = se3.compose(se3.inverse(self._previous), self._last)
+        return se3.compose(self._last, velocity)
+
+    def _advance(self, pose: Tensor) -> None:
+        self._previous, self._last = self._last, pose
+
+    def _moved_enough(self, pose: Tensor) -> bool:
+        cfg = self.config
+        motion = se3.compose(se3.inverse(self.keyframes[-1].pose), pose)
+        return (
+            float(motion[:3, 3].norm()) > cfg.keyframe_translation
+            or _angle_deg(motion) > cfg.keyframe_rotation_deg
+        )
+
+    def _icp(self, source: Tensor, initial: Tensor, gate: float) -> _icp.ICPResult:
+        cfg = self.config
+        config = _icp.ICPConfig(
+            method="point_to_plane",
+            max_iterations=cfg.icp_iterations,
+            relative_tolerance=1e-6,
+            max_distance=gate,
+            gate_scale=None,
+            kernel="cauchy",
+            kernel_scale=gate * cfg.kernel_fraction,
+            rotation_tolerance_deg=0.01,
+            translation_tolerance=0.01 * cfg.voxel,
+        )
+        target, normals = self.map.state()
+        return _icp._run(
+            "Odometry.add", source, target, initial[None], config, normals, self.map.tree
+        )[0]
+
+    def _judge(self, source: Tensor, T: Tensor) -> AlignmentQuality:
+        target, normals = self.map.state()
+        return alignment_quality(
+            source, target, normals, T, JUDGE_VOXELS * self.config.voxel, self._thresholds,
+            noise_floor=0.1 * self.config.voxel, tree=self.map.tree,
+        )  # fmt: skip
+
+    def _register(
+        self, source: Tensor, prediction: Tensor, gate: float
+    ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus]:
+        result = self._icp(source, prediction, gate)
+        quality = self._judge(source, result.transform)
+        if quality.trusted:
+            return result.transform, quality, int(result.iterations), FrameStatus.TRACKED
+        assert self._last is not None
+        attempts = [(result.transform, quality, int(result.iterations))]
+        wide = 3.0 * gate
+        for start in (prediction, self._last):
+            coarse = self._icp(source, start, wide)
+            fine = self._icp(source, coarse.transform, gate)
+            q = self._judge(source, fine.transform)
+            attempts.append((fine.transform, q, int(coarse.iterations) + int(fine.iterations)))
+            if q.trusted:
+                return fine.transform, q, attempts[-1][2], FrameStatus.RETRIED
+        best = max(attempts, key=lambda a: (a[1].fitness, -a[1].rms))
+        return best[0], best[1], best[2], FrameStatus.UNRELIABLE
+
+    def _make_keyframe(self, info: FrameInfo, source: Tensor, information: Tensor) -> None:
+        cfg = self.config
+        k = min(cfg.normal_neighbors, source.shape[0])
+        origin = source.new_zeros(3)
+        normals = _normals("Odometry.add", source, k, origin)
+        keyframe = Keyframe(info.index, info.pose, source, normals, information)
+        self.keyframes.append(keyframe)
+        info.is_keyframe = True
+        info.anchor = len(self.keyframes) - 1
+        R, t = info.pose[:3, :3].numpy(), info.pose[:3, 3].numpy()
+        self.map.add(source.numpy() @ R.T + t, normals.numpy() @ R.T, t)
+        if self.on_keyframe is not None:
+            self.on_keyframe(keyframe)
