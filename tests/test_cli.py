@@ -32,7 +32,7 @@ from torchslam.posegraph.graph import PoseGraph
 from torchslam.solver import Status
 
 TINY_DEMO = ["demo", "--poses", "5", "--points", "60"]
-SUBCOMMANDS = ["demo", "bench", "posegraph", "register"]
+SUBCOMMANDS = ["demo", "bench", "posegraph", "register", "slam"]
 
 
 def call(argv: list[str], capsys) -> tuple[int, str, str]:

@@ -470,6 +470,11 @@ def plot_slam(result: SLAMResult, path: str | os.PathLike, max_points: int = 200
             [p[a], q[a]], [p[b], q[b]], color="tab:red", lw=1.2,
             label="loop closure" if k == 0 else None, zorder=4,
         )  # fmt: skip
+    # frame the trajectory with a margin (a LiDAR map reaches far beyond it)
+    low, high = positions.min(0), positions.max(0)
+    margin = max(0.3 * float(np.max(high - low)), 1.0)
+    ax.set_xlim(low[a] - margin, high[a] + margin)
+    ax.set_ylim(low[b] - margin, high[b] + margin)
     names = "xyz"
     ax.set_xlabel(f"{names[a]} (m)")
     ax.set_ylabel(f"{names[b]} (m)")

@@ -1,9 +1,11 @@
 """Data: seeded synthetic ICP-SLAM scenes (``synthetic``), the benchmark cases of issue 4 and
 loop scenes with odometry and loop-closure measurements (``loop``), and synthetic pose graphs
-(``posegraph``: a torus or grid with loop closures, optionally wrong ones)."""
+(``posegraph``: a torus or grid with loop closures, optionally wrong ones) and a range-sensor
+sequence of a room scanned along a loop (``sequence``)."""
 
 from torchslam.data.loop import LoopScene, make_loop_scene
 from torchslam.data.posegraph import SyntheticPoseGraph, make_pose_graph
+from torchslam.data.sequence import SyntheticSequence, make_sequence
 from torchslam.data.synthetic import BENCHMARK_CASES, SyntheticScene, benchmark_case, make_scene
 
 __all__ = [
@@ -11,8 +13,10 @@ __all__ = [
     "LoopScene",
     "SyntheticPoseGraph",
     "SyntheticScene",
+    "SyntheticSequence",
     "benchmark_case",
     "make_loop_scene",
     "make_pose_graph",
     "make_scene",
+    "make_sequence",
 ]

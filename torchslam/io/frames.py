@@ -56,8 +56,13 @@ _TIMESTAMP_NAMES = ("times.txt", "timestamps.txt", "depth.txt", "associations.tx
 _INVALID_DEPTH_CODE = 65535
 
 
-def _natural_key(path: Path) -> list:
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
+def _natural_key(path: Path) -> tuple:
+    parts = re.split(r"([0-9]+)", path.name)
+    # numbers compare as numbers (the ASCII digit runs only); the name breaks ties (a01, a1)
+    return (
+        [(0, int(t), "") if i % 2 else (1, 0, t.lower()) for i, t in enumerate(parts)],
+        path.name,
+    )
 
 
 def _error(fn: str, path: object, what: str) -> ValueError:
@@ -223,6 +228,9 @@ def read_depth(
         raise _error(fn, where, f"not a readable image ({type(error).__name__}: {error})") from None
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
+    if image.dtype.kind in "iu" and image.size and 0 <= image.min() and image.max() <= 65535:
+        # Pillow reads 16-bit PGM (and some TIFF) as int32: keep the 16-bit "no return" code
+        image = image.astype(np.uint16)
     if image.ndim != 2:
         raise _error(
             fn, where, f"expected a single-channel depth image, got shape {tuple(image.shape)} "

@@ -59,9 +59,13 @@ class LoopClosure:
     # set by the back end: kept in the final graph (its χ² passed), and its χ² there
     kept: bool = False
     chi2: float = float("nan")
+    # added by hand with its measurement (SLAM.add_loop(..., measurement=...)), not verified
+    forced: bool = False
 
     @property
     def reason(self) -> str:
+        if self.forced:
+            return "forced" if self.kept or self.chi2 != self.chi2 else "forced, dropped by χ²"
         if self.accepted:
             return "accepted" if self.kept or self.chi2 != self.chi2 else "dropped by χ² check"
         return self.quality.problem or "rejected"

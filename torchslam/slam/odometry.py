@@ -345,9 +345,16 @@ class Odometry:
         self, source: Tensor, prediction: Tensor, gate: float
     ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus]:
         result = self._icp(source, prediction, gate)
+        iterations = int(result.iterations)
+        fine = JUDGE_VOXELS * self.config.voxel
+        if gate > 1.5 * fine:
+            # A wide gate (fast or unknown motion) lets wrong matches bias the optimum: finish
+            # with the gate the alignment is judged with.
+            result = self._icp(source, result.transform, fine)
+            iterations += int(result.iterations)
         quality = self._judge(source, result.transform)
         if quality.trusted:
-            return result.transform, quality, int(result.iterations), FrameStatus.TRACKED
+            return result.transform, quality, iterations, FrameStatus.TRACKED
         assert self._last is not None
         attempts = [(result.transform, quality, int(result.iterations))]
         wide = 3.0 * gate

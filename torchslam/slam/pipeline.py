@@ -14,6 +14,7 @@ sensor frame), as TUM and KITTI trajectory files hold them.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -26,6 +27,7 @@ from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
+from torchslam.registration.quality import AlignmentQuality
 from torchslam.slam.backend import BackendResult, optimize_keyframes
 from torchslam.slam.config import SLAMConfig
 from torchslam.slam.loops import LoopClosure, find_candidates, verify_loop
@@ -162,16 +164,46 @@ class SLAM:
                 break
         self._loop_seconds += time.perf_counter() - tic
 
-    def add_loop(self, first: int, second: int) -> LoopClosure:
-        """Verify a loop candidate between keyframes ``first`` < ``second`` by hand (e.g. from
-        a place-recognition front end); it joins the graph when accepted."""
+    def add_loop(
+        self,
+        first: int,
+        second: int,
+        *,
+        measurement: object = None,
+        information: object = None,
+    ) -> LoopClosure:
+        """A loop candidate between keyframes ``first`` < ``second`` given by hand (e.g. by a
+        place-recognition front end).
+
+        Without ``measurement`` it is verified by ICP like a detected one and joins the graph
+        when accepted. With ``measurement`` (Z = T_first⁻¹ T_second, (4, 4)) it is forced into
+        the graph unverified, with ``information`` ((6, 6), (ω, v); default: the mean of the
+        odometry edges'); the back end's χ² test and robust kernel still judge it.
+        """
         fn = "SLAM.add_loop"
         K = len(self.keyframes)
         first = _checks.check_int(fn, "first", first, minimum=0, maximum=K - 1)
         second = _checks.check_int(fn, "second", second, minimum=0, maximum=K - 1)
         if first >= second:
             raise ValueError(f"{fn}: need first < second, got {first} and {second}")
-        closure = verify_loop(self.keyframes, first, second, self.config)
+        if measurement is None:
+            if information is not None:
+                raise ValueError(f"{fn}: 'information' needs 'measurement'")
+            closure = verify_loop(self.keyframes, first, second, self.config)
+        else:
+            Z = _checks.from_numpy(measurement)
+            _checks.check_batched(fn, "measurement", Z, (), (4, 4))
+            Z = Z.detach().to(torch.float64).cpu()
+            _checks.check_pose_matrix(fn, "measurement", Z)
+            if information is None:
+                omega = torch.stack([kf.information for kf in self.keyframes[1:]]).mean(0)
+            else:
+                omega = _checks.from_numpy(information)
+                _checks.check_batched(fn, "information", omega, (), (6, 6))
+                omega = omega.detach().to(torch.float64).cpu()
+                _checks.check_finite(fn, "information", omega)
+            quality = AlignmentQuality(math.nan, math.nan, math.nan, 0, omega, None)
+            closure = LoopClosure(first, second, Z, omega, quality, True, forced=True)
         self.loops.append(closure)
         return closure
 
