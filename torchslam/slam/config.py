@@ -49,6 +49,9 @@ class SLAMConfig:
     min_motion: float = 0.02
     # iteration cap and the step tolerances of the ICP
     icp_iterations: int = 30
+    # keyframes (the local map, loop closures, the map output) keep their points on a grid of
+    # this fraction of the voxel; frames are registered on the voxel grid
+    map_voxel_fraction: float = 1.0
     # the local map: the newest map_keyframes keyframes within map_radius of the sensor
     map_keyframes: int = 20
     map_radius: float = 60.0
@@ -112,6 +115,7 @@ class SLAMConfig:
             "initial_gate",
             "max_gate",
             "kernel_fraction",
+            "map_voxel_fraction",
             "map_radius",
             "loop_radius",
             "loop_gate",

@@ -176,7 +176,9 @@ class Odometry:
         self.on_keyframe = on_keyframe
         self.frames: list[FrameInfo] = []
         self.keyframes: list[Keyframe] = []
-        self.map = LocalMap(config.voxel, config.map_keyframes, config.map_radius)
+        self.map = LocalMap(
+            config.voxel * config.map_voxel_fraction, config.map_keyframes, config.map_radius
+        )
         self._gate = _AdaptiveGate(
             config.initial_gate,
             config.min_gate_voxels * config.voxel,
@@ -212,7 +214,7 @@ class Odometry:
         if timestamp is not None:
             timestamp = _checks.check_real(fn, "timestamp", timestamp)
         index = len(self.frames)
-        source = self._preprocess(cloud)
+        dense, source = self._preprocess(cloud)
         cfg = self.config
         if self._last is None:
             pose = torch.eye(4, dtype=torch.float64)
@@ -227,7 +229,7 @@ class Odometry:
                 math.nan, math.nan, 0, source.shape[0], dropped, 0.0,
             )  # fmt: skip
             information = torch.eye(6, dtype=torch.float64)
-            self._make_keyframe(info, source, information)
+            self._make_keyframe(info, dense, information)
             self._advance(pose)
             info.seconds = time.perf_counter() - tic
             self.frames.append(info)
@@ -259,7 +261,7 @@ class Odometry:
         )  # fmt: skip
         if status != FrameStatus.UNRELIABLE and self._moved_enough(pose):
             information = quality.information * (cfg.effective_points / max(quality.inliers, 1))
-            self._make_keyframe(info, source, information)
+            self._make_keyframe(info, dense, information)
         self._advance(pose)
         info.seconds = time.perf_counter() - tic
         self.frames.append(info)
@@ -292,11 +294,15 @@ class Odometry:
                 raise ValueError(f"{fn}: argument 'points' has no finite point ({dropped} NaN/Inf)")
         return points, dropped
 
-    def _preprocess(self, cloud: Tensor) -> Tensor:
+    def _preprocess(self, cloud: Tensor) -> tuple[Tensor, Tensor]:
         cfg = self.config
         ranges = torch.linalg.vector_norm(cloud, dim=-1)
         kept = cloud[(ranges >= cfg.min_range) & (ranges <= cfg.max_range)]
-        return _downsample("Odometry.add", kept, cfg.voxel)
+        if cfg.map_voxel_fraction >= 1.0:
+            source = _downsample("Odometry.add", kept, cfg.voxel)
+            return source, source
+        dense = _downsample("Odometry.add", kept, cfg.voxel * cfg.map_voxel_fraction)
+        return dense, _downsample("Odometry.add", dense, cfg.voxel)
 
     def _predict(self) -> Tensor:
         assert self._last is not None

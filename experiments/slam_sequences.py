@@ -1,0 +1,230 @@
+"""ICP-SLAM on real sequences, side by side with the odometry users would pick instead.
+
+For each sequence (default: the three of ``../shared/data``: 7-Scenes depth frames, the
+hku2-loop and quick-shack LiDAR keyframes) and each thread count (default 1 and 2):
+
+- torchslam: the whole run as a user runs it, **reading included**: the frames are read with
+  ``torchslam.io.frames`` and fed to the streaming :class:`torchslam.slam.SLAM` (the defaults
+  of ``SLAMConfig.for_sensor``), then ``finish()`` (loop closures, pose graph). Time and RSS
+  are recorded after every frame;
+- the peers (``experiments/slam_peers.py`` in the peers venv, when there is one): Open3D
+  point-to-plane, small_gicp frame-to-frame and frame-to-model, KISS-ICP, on the same points
+  (for depth: the same back-projected pixels, stride and range as torchslam's); their times
+  are processing only (reading excluded), as they report them.
+
+ATE: RMSE of the positions after an SE(3) alignment onto the reference (evo_ape --align);
+RPE: RMSE of the translation of successive-frame motions (evo_rpe --delta 1). Reference poses
+are the dataset's (7-Scenes: KinectFusion; LiDAR: a LiDAR-inertial system with loop closure,
+a pseudo ground truth).
+
+Usage::
+
+    .venv/bin/python experiments/slam_sequences.py [--sequences rgbd/7scenes-150-199,...]
+        [--data ../shared/data] [--threads 1,2] [--peers-python ../peers-venv/bin/python]
+        [--no-peers] [--out out/slam_sequences]
+
+Writes ``OUT/results.json`` and ``OUT/time_rss.png`` (time per frame and RSS against the frame
+index, torchslam, per sequence).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SEQUENCES = ("rgbd/7scenes-150-199", "lidar/hku2-loop", "lidar/quick-shack")
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _reference(folder: Path, count: int):
+    from torchslam.io import frames as fio
+
+    for candidate in (folder / "optimized_poses.txt", folder / "groundtruth.txt", folder):
+        if candidate.exists():
+            try:
+                return fio.read_reference_poses(candidate, count)[0]
+            except ValueError:
+                continue
+    raise ValueError(f"no reference poses for {folder}")
+
+
+def _errors(poses: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
+    from torchslam.cli.slam import trajectory_errors
+
+    return trajectory_errors(poses, reference)
+
+
+def run_torchslam(folder: Path, threads: int) -> tuple[dict, list[np.ndarray], str]:
+    from torchslam.io import frames as fio
+    from torchslam.slam import SLAM, SLAMConfig
+
+    torch.set_num_threads(threads)
+    paths, sensor = fio.list_frames(folder)
+    config = SLAMConfig.for_sensor(sensor)
+    K = fio.read_intrinsics(fio.find_intrinsics(folder)) if sensor == "depth" else None
+    times_path = fio.find_timestamps(paths[0].parent)
+    times = None if times_path is None else fio.read_timestamps(times_path, len(paths))
+    slam = SLAM(config)
+    clouds, per_frame, rss = [], [], []
+    start = time.perf_counter()
+    for i, path in enumerate(paths):
+        tic = time.perf_counter()
+        if sensor == "depth":
+            cloud = fio.read_depth(
+                path, K, max_range=config.max_range, min_range=config.min_range,
+                stride=config.pixel_stride,
+            )  # fmt: skip
+        else:
+            cloud = fio.read_points(path)
+        slam.add(cloud, None if times is None else float(times[i]))
+        per_frame.append(time.perf_counter() - tic)
+        rss.append(_rss_mb())
+        clouds.append(cloud.numpy().astype(np.float32))
+    tic = time.perf_counter()
+    result = slam.finish()
+    finish = time.perf_counter() - tic
+    wall = time.perf_counter() - start
+    record = {
+        "poses": result.poses,
+        "odometry_poses": result.odometry_poses,
+        "wall_s": wall,
+        "finish_s": finish,
+        "ms_per_frame": 1000 * wall / len(paths),
+        "frame_ms": [1000 * t for t in per_frame],
+        "rss_mb": rss,
+        "keyframes": len(result.keyframe_frames),
+        "loops_accepted": len(result.accepted_loops),
+        "loops_rejected": len(result.rejected_loops),
+        "unreliable": sum(not f.trusted for f in result.frames),
+    }
+    return record, clouds, sensor
+
+
+def run_peers(python: str, clouds: list[np.ndarray], sensor: str, threads: int, work: Path):
+    frames = work / "frames.npz"
+    if not frames.exists():
+        arrays = {f"frame_{k:06d}": c for k, c in enumerate(clouds)}
+        np.savez(frames, sensor=np.array(sensor), **arrays)
+    out = work / f"peers_{threads}.json"
+    env = dict(os.environ)
+    venv_lib = str(Path(python).resolve().parents[1] / "lib")
+    env["LD_LIBRARY_PATH"] = venv_lib + os.pathsep + env.get("LD_LIBRARY_PATH", "")
+    command = [python, str(ROOT / "experiments" / "slam_peers.py"), "--frames", str(frames)]
+    command += ["--out", str(out), "--threads", str(threads)]
+    subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
+    return json.loads(out.read_text())["methods"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sequences", default=",".join(SEQUENCES))
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=Path(os.environ.get("TORCHSLAM_DATA_MIRROR", ROOT.parent / "shared" / "data")),
+    )
+    parser.add_argument("--threads", default="1,2")
+    parser.add_argument(
+        "--peers-python", default=str(ROOT.parent / "peers-venv" / "bin" / "python")
+    )
+    parser.add_argument("--no-peers", action="store_true")
+    parser.add_argument("--out", type=Path, default=ROOT / "out" / "slam_sequences")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    threads = [int(t) for t in args.threads.split(",")]
+    peers = not args.no_peers and Path(args.peers_python).exists()
+    if not peers and not args.no_peers:
+        print(f"peers skipped: no {args.peers_python} (bash ../shared/tools/install-peers.sh)")
+    rows, series = [], {}
+    for name in args.sequences.split(","):
+        folder = args.data / name
+        work = args.out / name.replace("/", "_")
+        work.mkdir(parents=True, exist_ok=True)
+        for t in threads:
+            record, clouds, sensor = run_torchslam(folder, t)
+            reference = _reference(folder, len(clouds))
+            odo = _errors(record["odometry_poses"], reference)
+            final = _errors(record["poses"], reference)
+            series.setdefault(name, record)
+            rows.append({
+                "sequence": name, "method": "torchslam odometry", "threads": t,
+                **odo, "ms_per_frame": None,
+            })  # fmt: skip
+            rows.append({
+                "sequence": name, "method": "torchslam SLAM", "threads": t, **final,
+                "ms_per_frame": record["ms_per_frame"], "reading": True,
+                "loops": f"{record['loops_accepted']} of "
+                f"{record['loops_accepted'] + record['loops_rejected']}",
+                "max_rss_mb": max(record["rss_mb"]),
+            })  # fmt: skip
+            if peers:
+                for method, value in run_peers(args.peers_python, clouds, sensor, t, work).items():
+                    if "poses" not in value:
+                        rows.append({"sequence": name, "method": method, "threads": t,
+                                     "error": value.get("error")})  # fmt: skip
+                        continue
+                    poses = torch.tensor(value["poses"], dtype=torch.float64)
+                    rows.append({
+                        "sequence": name, "method": method, "threads": t,
+                        **_errors(poses, reference), "ms_per_frame": value["ms_per_frame"],
+                        "reading": False,
+                    })  # fmt: skip
+            _print([r for r in rows if r["sequence"] == name and r["threads"] == t])
+    (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+    _plot(series, args.out / "time_rss.png")
+    print(f"wrote {args.out / 'results.json'}, {args.out / 'time_rss.png'}")
+    return 0
+
+
+def _print(rows: list[dict]) -> None:
+    for r in rows:
+        if "error" in r:
+            print(f"{r['sequence']:<22} {r['method']:<20} {r['threads']}  error: {r['error']}")
+            continue
+        ms = "" if r.get("ms_per_frame") is None else f"{r['ms_per_frame']:7.1f} ms/frame"
+        extra = " (reading included)" if r.get("reading") else ""
+        loops = f"  loops {r['loops']}" if "loops" in r else ""
+        print(
+            f"{r['sequence']:<22} {r['method']:<20} {r['threads']}  ATE {r['ate']:8.4f} m  "
+            f"RPE {r['rpe']:.4f} m  {ms}{extra}{loops}"
+        )
+    sys.stdout.flush()
+
+
+def _plot(series: dict, path: Path) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("figure skipped: matplotlib is not installed")
+        return
+    figure, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    for name, record in series.items():
+        axes[0].plot(record["frame_ms"], lw=0.8, label=name)
+        axes[1].plot(record["rss_mb"], lw=1.2, label=name)
+    axes[0].set_ylabel("time per frame (ms, reading included)")
+    axes[1].set_ylabel("RSS (MB)")
+    axes[1].set_xlabel("frame")
+    axes[0].legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
