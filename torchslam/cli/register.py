@@ -46,7 +46,12 @@ __all__ = ["add_arguments", "main", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam register``."""
-    parser.add_argument("scans", nargs="+", type=Path, help="PLY scans, any order (≥ 2)")
+    parser.add_argument(
+        "scans",
+        nargs="+",
+        type=Path,
+        help="scans, any order (≥ 2): PLY, PCD, XYZ/TXT/PTS, NPY or KITTI .bin",
+    )
     parser.add_argument(
         "--chain",
         action="store_true",

@@ -99,7 +99,9 @@ Progress = Callable[[str], None]
 def load_scans(
     paths: Sequence[str | os.PathLike], *, dtype: torch.dtype = torch.float64
 ) -> tuple[list[str], list[Tensor]]:
-    """Read PLY scans (vertex coordinates only).
+    """Read scans: PLY (vertex coordinates, the strict reader :func:`read_ply_points`), PCD,
+    XYZ/TXT/PTS, NPY and KITTI ``.bin`` (:func:`torchslam.io.frames.read_points`, which drops
+    non-finite points: missed returns).
 
     Args:
         paths: the files, ≥ 2, with distinct base names.
@@ -142,7 +144,12 @@ def load_scans(
             raise ValueError(f"{fn}: argument 'paths' holds a directory, not a scan: {path}")
         if not os.path.isfile(path):
             raise FileNotFoundError(f"{fn}: no such scan file: {path}")
-        cloud = read_ply_points(path, dtype=dtype)
+        if path.lower().endswith(".ply"):
+            cloud = read_ply_points(path, dtype=dtype)
+        else:
+            from torchslam.io.frames import read_points
+
+            cloud = read_points(path, dtype=dtype)
         if cloud.shape[0] < 10:
             raise ValueError(f"{fn}: {path}: only {cloud.shape[0]} points, need ≥ 10")
         if not bool(torch.isfinite(cloud).all()):

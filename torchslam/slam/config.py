@@ -18,6 +18,8 @@ from torchslam import _checks
 __all__ = ["SENSORS", "SLAMConfig"]
 
 SENSORS = ("depth", "lidar")
+# the smallest max_source_points accepted (ICP needs enough correspondences to be judged)
+MIN_SOURCE_POINTS = 100
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,9 @@ class SLAMConfig:
     min_motion: float = 0.02
     # iteration cap and the step tolerances of the ICP
     icp_iterations: int = 30
+    # frames with more points than this after downsampling are registered on a random subset
+    # of this size (the keyframes keep all): bounds the time per frame of dense scans
+    max_source_points: int = 8000
     # keyframes (the local map, loop closures, the map output) keep their points on a grid of
     # this fraction of the voxel; frames are registered on the voxel grid
     map_voxel_fraction: float = 1.0
@@ -146,6 +151,7 @@ class SLAMConfig:
         for name, low in (
             ("pixel_stride", 1),
             ("icp_iterations", 1),
+            ("max_source_points", MIN_SOURCE_POINTS),
             ("map_keyframes", 1),
             ("normal_neighbors", 3),
             ("loop_min_gap", 1),

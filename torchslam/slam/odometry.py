@@ -299,10 +299,17 @@ class Odometry:
         ranges = torch.linalg.vector_norm(cloud, dim=-1)
         kept = cloud[(ranges >= cfg.min_range) & (ranges <= cfg.max_range)]
         if cfg.map_voxel_fraction >= 1.0:
-            source = _downsample("Odometry.add", kept, cfg.voxel)
-            return source, source
-        dense = _downsample("Odometry.add", kept, cfg.voxel * cfg.map_voxel_fraction)
-        return dense, _downsample("Odometry.add", dense, cfg.voxel)
+            dense = source = _downsample("Odometry.add", kept, cfg.voxel)
+        else:
+            dense = _downsample("Odometry.add", kept, cfg.voxel * cfg.map_voxel_fraction)
+            source = _downsample("Odometry.add", dense, cfg.voxel)
+        if source.shape[0] > cfg.max_source_points:
+            # A dense scan (a 64-beam LiDAR): register an evenly spread subset, keep all in the
+            # map. The same subset for the same input (a fixed generator): runs repeat exactly.
+            generator = torch.Generator().manual_seed(source.shape[0])
+            pick = torch.randperm(source.shape[0], generator=generator)[: cfg.max_source_points]
+            source = source[pick.sort().values]
+        return dense, source
 
     def _predict(self) -> Tensor:
         assert self._last is not None
