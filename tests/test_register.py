@@ -354,3 +354,27 @@ def test_bunny_three_scans_against_bun_conf():
     rotation, translation = pose_errors(result.poses, reference, 0)
     assert float(rotation.max()) < 0.5  # degrees
     assert float(translation.max()) < 1e-3  # metres
+
+
+def test_load_scans_reads_the_formats_users_have(tmp_path):
+    # the same cloud as PLY, NPY, XYZ text and PCD: the same points (NaN rows dropped from the
+    # sensor formats; PLY stays strict)
+    from pypcd4 import PointCloud
+
+    g = np.random.default_rng(0)
+    cloud = g.normal(size=(40, 3)).astype(np.float32).astype(np.float64)  # exact in float32
+    with_nan = cloud.copy()
+    with_nan[5] = np.nan
+    write_ply(tmp_path / "a.ply", cloud)
+    np.save(tmp_path / "b.npy", with_nan)
+    np.savetxt(tmp_path / "c.xyz", with_nan, fmt="%.17g")  # exact in float64
+    PointCloud.from_xyz_points(with_nan.astype(np.float32)).save(tmp_path / "d.pcd")
+    paths = [tmp_path / n for n in ("a.ply", "b.npy", "c.xyz", "d.pcd")]
+    names, clouds = registration.load_scans(paths)
+    assert names == ["a", "b", "c", "d"]
+    assert torch.equal(clouds[0], torch.from_numpy(cloud))
+    for other in clouds[1:]:
+        assert torch.equal(other, torch.from_numpy(np.delete(cloud, 5, axis=0)))
+    (tmp_path / "e.las").write_bytes(b"LASF")
+    with pytest.raises(ValueError, match=r"\.pcd, \.bin, \.ply"):
+        registration.load_scans([paths[0], tmp_path / "e.las"])
