@@ -318,3 +318,23 @@ def test_corrector_bad_input():
         triggs_correction(s, 1.0, s)  # type: ignore[arg-type]
     with validation(False):
         triggs_correction(s, s, s)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_weight_is_rho_prime_bit_for_bit(dtype):
+    # ρ' alone (ICP's IRLS weights) by the same formulas: identical values, over squared norms
+    # from 1e-30 to 1e30 (float64) and scales from tiny to huge, batched and scalar.
+    from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
+
+    g = torch.Generator().manual_seed(0)
+    exponent = torch.randint(-30, 31, (2, 500), generator=g).to(torch.float64)
+    if dtype == torch.float32:
+        exponent = exponent.clamp(-18, 18)
+    s = torch.rand(2, 500, generator=g, dtype=torch.float64) * 10.0**exponent
+    s = torch.cat((s, torch.zeros(2, 3, dtype=torch.float64)), 1).to(dtype)
+    scales = (torch.tensor([0.5, 1e-30], dtype=dtype), 3.0, 1e15)
+    for kernel in (CauchyLoss, HuberLoss, TukeyLoss):
+        for scale in scales:
+            loss = kernel(scale)
+            assert torch.equal(loss.weight(s), loss(s)[1]), (kernel, scale)
+    assert torch.equal(TrivialLoss().weight(s), torch.ones_like(s))

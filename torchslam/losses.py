@@ -138,6 +138,16 @@ class RobustLoss(abc.ABC):
         s = _check_s(fn, s)
         return self._evaluate(fn, s)
 
+    def weight(self, s: Tensor) -> Tensor:
+        """ρ'(s) alone: the weight of iteratively reweighted least squares (ICP), the same
+        values as ``self(s)[1]`` at a fraction of the cost."""
+        fn = f"{type(self).__name__}.weight"
+        s = _check_s(fn, s)
+        return self._weight(fn, s)
+
+    def _weight(self, fn: str, s: Tensor) -> Tensor:
+        return self._evaluate(fn, s)[1]
+
     @abc.abstractmethod
     def _evaluate(self, fn: str, s: Tensor) -> tuple[Tensor, Tensor, Tensor]: ...
 
@@ -196,6 +206,13 @@ class _ScaledKernel(RobustLoss):
     def _evaluate(self, fn: str, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return self._evaluate_scaled(s, self._aligned_scale(fn, s))
 
+    def _weight(self, fn: str, s: Tensor) -> Tensor:
+        return self._weight_scaled(s, self._aligned_scale(fn, s))
+
+    def _weight_scaled(self, s: Tensor, scale: Tensor) -> Tensor:
+        """ρ' from s and the aligned scale, bit for bit :meth:`_evaluate_scaled`'s."""
+        return self._evaluate_scaled(s, scale)[1]
+
     def _aligned_scale(self, fn: str, s: Tensor) -> Tensor:
         """The scale as a tensor of s's dtype, with trailing singleton dims so that its dims
         align with s's leading dims, clamped to the dtype's positive normal range (a float
@@ -245,6 +262,12 @@ class HuberLoss(_ScaledKernel):
         rho2 = torch.where(outlier, _saturate(-0.5 * rho1_out / s_out), 0.0)
         return rho, rho1, rho2
 
+    def _weight_scaled(self, s: Tensor, scale: Tensor) -> Tensor:
+        outlier = _beyond_knee(s, scale)
+        s_out = torch.where(outlier, s, 1.0)
+        a_out = torch.where(outlier, scale, 1.0)
+        return torch.where(outlier, a_out / torch.sqrt(s_out), 1.0)
+
 
 class CauchyLoss(_ScaledKernel):
     """Cauchy (Lorentzian) kernel (Ceres' ``CauchyLoss(a)``): ρ(s) = a² log(1 + s/a²).
@@ -289,6 +312,15 @@ class CauchyLoss(_ScaledKernel):
         rho2 = _saturate(-(ratio * ratio))
         return rho, rho1, rho2
 
+    def _weight_scaled(self, s: Tensor, scale: Tensor) -> Tensor:
+        outer = _beyond_knee(s, scale)
+        s_in = torch.where(outer, 0.0, s)
+        a_in = torch.where(outer, 1.0, scale)
+        s_out = torch.where(outer, s, 2.0)
+        a_out = torch.where(outer, scale, 1.0)
+        u = a_out / s_out * a_out
+        return torch.where(outer, u / (1.0 + u), 1.0 / (1.0 + s_in / a_in / a_in))
+
 
 class TukeyLoss(_ScaledKernel):
     """Tukey's biweight (Ceres' ``TukeyLoss(a)``), constant for |r| > a.
@@ -316,6 +348,13 @@ class TukeyLoss(_ScaledKernel):
         rho1 = torch.where(outlier, 0.0, v * v)
         rho2 = torch.where(outlier, 0.0, _saturate(-2.0 * (v / a_in / a_in)))
         return rho, rho1, rho2
+
+    def _weight_scaled(self, s: Tensor, scale: Tensor) -> Tensor:
+        outlier = _beyond_knee(s, scale)
+        s_in = torch.where(outlier, 0.0, s)
+        a_in = torch.where(outlier, 1.0, scale)
+        v = 1.0 - s_in / a_in / a_in
+        return torch.where(outlier, 0.0, v * v)
 
 
 def _beyond_knee(s: Tensor, scale: Tensor) -> Tensor:

@@ -168,8 +168,7 @@ def _kernel_weights(kernel: str, residual: Tensor, scale: Tensor) -> Tensor:
         loss = CauchyLoss(scale)
     else:
         loss = TukeyLoss(scale)
-    _, rho1, _ = loss(s)  # type: ignore[operator]
-    return rho1
+    return loss.weight(s)  # type: ignore[attr-defined]
 
 
 class ICPStatus(enum.IntEnum):
@@ -397,7 +396,10 @@ def _point_to_plane_step(
     empty = scale <= 0
     H = torch.where(empty, eye, H + 1e-12 * scale * eye)
     delta = -torch.linalg.solve(H, torch.where(empty, torch.zeros_like(g), g)).squeeze(-1)
-    step = se3.exp(delta)
+    # The θ-power form is the robust one bit for bit within these bounds (se3's docstring) and
+    # skips its branches; a Gauss-Newton increment leaves them only on degenerate data.
+    fast = float(delta.abs().max()) <= 2.0**20 if delta.numel() else True
+    step = se3._exp(delta) if fast else se3._exp_robust(delta)
     # Rotate about the centroid: Trans(c) exp(δ) Trans(−c).
     shift = step[:, :3, 3] + centroid - (step[:, :3, :3] @ centroid[..., None]).squeeze(-1)
     return se3.from_rotation_translation(step[:, :3, :3], shift)
