@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         "--peers-python", default=str(ROOT.parent / "peers-venv" / "bin" / "python")
     )
     parser.add_argument("--no-peers", action="store_true")
-    parser.add_argument("--out", type=Path, default=ROOT / "out" / "slam_sequences")
+    parser.add_argument("--out", type=Path, default=Path("out") / "slam_sequences")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     threads = [int(t) for t in args.threads.split(",")]

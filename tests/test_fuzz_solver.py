@@ -184,6 +184,23 @@ def test_padding_term_instances_are_inert():
     assert bool((measurements.grad[1] == 0).all())
 
 
+@pytest.mark.parametrize("kind", ["relative", "prior"])
+def test_all_padding_term_is_inert(kind):
+    # Every instance padding, holding a non-rigid (and NaN) measurement: accepted, and the
+    # solve is the one without the term (issue 28 §7).
+    inputs = _tiny(B=1)
+    junk = torch.full((2, 4, 4), 2.0, dtype=F64)
+    junk[0, 0, 0] = math.nan
+    valid = torch.tensor([False, False])
+    if kind == "relative":
+        term = ts.RelativePoseTerm(torch.tensor([[0, 1], [1, 2]]), junk, valid=valid)
+    else:
+        term = ts.PosePriorTerm(torch.tensor([1, 2]), junk, valid=valid)
+    a = ts.solve(_build(**inputs), FEW)
+    b = ts.solve(_build(**inputs, terms=[term]), FEW)
+    torch.testing.assert_close(b.pose_tangent, a.pose_tangent, rtol=0, atol=1e-12)
+
+
 # --------------------------------------------------------------------------- reported failures
 
 

@@ -223,7 +223,9 @@ def plot_bench(rows: list[dict], path: Path) -> None:
     ax.set_yscale("log")
     ax.set_xticks(list(x), cases)
     ax.set_ylabel("wall time (s), log scale")
-    ax.set_title("ICP-SLAM solve time, float64, 2 threads")
+    counts = sorted({int(r["threads"]) for r in rows if "threads" in r})
+    threads = ", ".join(map(str, counts)) if counts else "?"
+    ax.set_title(f"ICP-SLAM solve time, float64, {threads} thread{'s' if counts != [1] else ''}")
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -255,6 +255,13 @@ class Term:
     # ----------------------------------------------------------------------------------------
     # What a subclass writes
 
+    def padding_constant(self, name: str, like: Tensor) -> Tensor:
+        """The value of constant ``name`` at padding instances when no instance is valid (one
+        instance's value, shaped and typed like ``like``): zeros. A term whose residual
+        refuses zeros overrides it (the pose terms give the identity), so that padding stays
+        inert whatever it holds."""
+        return torch.zeros_like(like)
+
     def residual(self, poses: Tensor, *args: Tensor, **constants: Tensor) -> Tensor:
         """Residuals of the instances: poses (..., a, 4, 4) and constants (..., …) → (..., d).
 
@@ -486,7 +493,12 @@ def masked_constants(term: Term) -> dict[str, Tensor]:
     out = {}
     for name, v in term.constants.items():
         tail = v.shape[2:]
-        value = v.reshape(B * K, *tail)[fill] if fill >= 0 else v.new_zeros(tail)
+        one = v.reshape(B * K, *tail)
+        value = (
+            one[fill]
+            if fill >= 0
+            else term.padding_constant(name, one[0] if len(one) else v.new_zeros(tail))
+        )
         out[name] = torch.where(term.valid.reshape(B, K, *([1] * len(tail))), v, value)
     return out
 
@@ -784,6 +796,11 @@ class RelativePoseTerm(Term):
             valid=valid,
         )
 
+    def padding_constant(self, name: str, like: Tensor) -> Tensor:
+        if name == "measurements":  # a rigid transform: the identity
+            return torch.eye(4, dtype=like.dtype, device=like.device).expand_as(like).clone()
+        return super().padding_constant(name, like)
+
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
         return relative_pose_residual(
             poses[..., 0, :, :], poses[..., 1, :, :], measurements, self.convention
@@ -827,6 +844,11 @@ class PosePriorTerm(Term):
             loss=loss,
             valid=valid,
         )
+
+    def padding_constant(self, name: str, like: Tensor) -> Tensor:
+        if name == "measurements":  # a rigid transform: the identity
+            return torch.eye(4, dtype=like.dtype, device=like.device).expand_as(like).clone()
+        return super().padding_constant(name, like)
 
     def residual(self, poses: Tensor, measurements: Tensor) -> Tensor:
         return pose_prior_residual(poses[..., 0, :, :], measurements)
