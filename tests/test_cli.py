@@ -196,7 +196,7 @@ def test_posegraph_bad_file_is_one_line_error(name, content, fragments, tmp_path
     [
         (_ply(["0 0 0 300", *GOOD_ROWS[1:]]), ["bad.ply", "line 9", "uchar", "300"]),
         (_ply(["0 0 0 2.7", *GOOD_ROWS[1:]]), ["bad.ply", "line 9", "'2.7'"]),
-        (_ply(["0 nan 0 1", *GOOD_ROWS[1:]]), ["bad.ply", "line 9", "finite"]),
+        # (a NaN coordinate is a missed return: dropped with a count, test_register.py)
         (_ply(GOOD_ROWS[:5]), ["bad.ply", "truncated"]),
         (_ply([*GOOD_ROWS, "1 2 3 4"]), ["bad.ply", "line 21", "beyond"]),
         ((PLY_HEADER + "\n".join(GOOD_ROWS)).replace("7", "\xe9", 1), ["bad.ply", "line 9"]),

@@ -378,3 +378,23 @@ def test_load_scans_reads_the_formats_users_have(tmp_path):
     (tmp_path / "e.las").write_bytes(b"LASF")
     with pytest.raises(ValueError, match=r"\.pcd, \.bin, \.ply"):
         registration.load_scans([paths[0], tmp_path / "e.las"])
+
+
+def test_load_scans_drops_nan_points_of_a_ply_or_refuses_them(tmp_path):
+    import plyfile
+
+    cloud = np.random.default_rng(1).normal(size=(30, 3))
+    cloud[[2, 7]] = np.nan
+    vertex = np.array([tuple(p) for p in cloud], dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(tmp_path / "a.ply")
+    write_ply(tmp_path / "b.ply", np.nan_to_num(cloud))
+    _, clouds, dropped = registration.load_scans(
+        [tmp_path / "a.ply", tmp_path / "b.ply"], return_dropped=True
+    )
+    assert dropped == [2, 0] and clouds[0].shape == (28, 3)
+    assert torch.equal(clouds[0], torch.from_numpy(np.delete(cloud, [2, 7], axis=0)))
+    with pytest.raises(ValueError, match="finite"):
+        registration.load_scans([tmp_path / "a.ply", tmp_path / "b.ply"], nonfinite="raise")
+    (tmp_path / "empty.ply").write_bytes(b"")
+    with pytest.raises(ValueError, match="empty"):
+        registration.load_scans([tmp_path / "b.ply", tmp_path / "empty.ply"])

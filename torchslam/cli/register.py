@@ -149,8 +149,11 @@ def _run(
         if missing:
             raise ValueError(f"{args.reference}: no pose for scan(s) {', '.join(missing)}")
     echo(f"[1/5] reading {len(args.scans)} scans …")
-    names, clouds = load_scans(args.scans)
+    names, clouds, dropped = load_scans(args.scans, return_dropped=True)
     echo(f"      {', '.join(f'{n} ({len(c)})' for n, c in zip(names, clouds, strict=True))}")
+    for name, count in zip(names, dropped, strict=True):
+        if count:
+            echo(f"      {name}: dropped {count} non-finite point(s)")
     stage = iter(("[2/5]", "[3/5]", "[4/5]"))
 
     def progress(line: str) -> None:

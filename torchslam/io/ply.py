@@ -656,6 +656,8 @@ def read_ply(path: str | os.PathLike, elements: Sequence[str] | None = None) -> 
                 )
     with open(path, "rb") as f:
         raw = f.read()
+    if not raw:
+        raise _error(path, "the file is empty (0 bytes)")
     fmt, declared, comments, obj_info, body_start = _read_header(path, raw)
     names = [e.name for e in declared]
     wanted = set(names) if elements is None else set(elements)

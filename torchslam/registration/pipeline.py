@@ -97,14 +97,21 @@ Progress = Callable[[str], None]
 
 
 def load_scans(
-    paths: Sequence[str | os.PathLike], *, dtype: torch.dtype = torch.float64
-) -> tuple[list[str], list[Tensor]]:
+    paths: Sequence[str | os.PathLike],
+    *,
+    dtype: torch.dtype = torch.float64,
+    nonfinite: str = "drop",
+    return_dropped: bool = False,
+) -> tuple[list[str], list[Tensor]] | tuple[list[str], list[Tensor], list[int]]:
     """Read scans: PLY (vertex coordinates, the strict reader :func:`read_ply_points`), PCD,
     XYZ/TXT/PTS, NPY and KITTI ``.bin`` (:func:`torchslam.io.frames.read_points`, which drops
     non-finite points: missed returns).
 
     Args:
         paths: the files, ≥ 2, with distinct base names.
+        nonfinite: ``"drop"`` (default) removes points with a NaN/±Inf coordinate (sensor
+            clouds mark missed returns so), in PLY files too; ``"raise"`` refuses such a file.
+        return_dropped: also return the number of points dropped from each scan.
         dtype: dtype of the clouds.
 
     Returns:
@@ -138,24 +145,42 @@ def load_scans(
             f"{fn}: argument 'paths' must give distinct scan names (base names without "
             f"extension), repeated: {', '.join(repeated)}"
         )
-    clouds = []
+    if nonfinite not in ("drop", "raise"):
+        raise ValueError(
+            f"{fn}: argument 'nonfinite' must be 'drop' or 'raise', got "
+            f"{_checks.describe(nonfinite)}"
+        )
+    clouds: list[Tensor] = []
+    dropped: list[int] = []
     for path in paths:
         if os.path.isdir(path):
             raise ValueError(f"{fn}: argument 'paths' holds a directory, not a scan: {path}")
         if not os.path.isfile(path):
             raise FileNotFoundError(f"{fn}: no such scan file: {path}")
-        if path.lower().endswith(".ply"):
-            cloud = read_ply_points(path, dtype=dtype)
-        else:
-            from torchslam.io.frames import read_points
+        from torchslam.io.frames import read_points
 
-            cloud = read_points(path, dtype=dtype)
+        dropped_here = 0
+        if path.lower().endswith(".ply"):
+            try:
+                cloud = read_ply_points(path, dtype=dtype)
+            except ValueError as error:
+                # The strict reader refuses NaN/Inf; sensor clouds hold them for missed returns.
+                if nonfinite == "raise" or "finite" not in str(error):
+                    raise
+                cloud, dropped_here = read_points(
+                    path, dtype=dtype, nonfinite="drop", return_dropped=True
+                )
+        else:
+            cloud, dropped_here = read_points(
+                path, dtype=dtype, nonfinite=nonfinite, return_dropped=True
+            )
+        dropped.append(dropped_here)
         if cloud.shape[0] < 10:
             raise ValueError(f"{fn}: {path}: only {cloud.shape[0]} points, need ≥ 10")
         if not bool(torch.isfinite(cloud).all()):
             raise ValueError(f"{fn}: {path}: non-finite vertex coordinates")
         clouds.append(cloud)
-    return names, clouds
+    return (names, clouds, dropped) if return_dropped else (names, clouds)
 
 
 # ----------------------------------------------------------------------------- pairwise chain
