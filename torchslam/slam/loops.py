@@ -111,6 +111,13 @@ def verify_loop(
 ) -> LoopClosure:
     """Register keyframe ``second`` against the submap around ``first`` and judge it
     (module docstring)."""
+    with _icp._host_threads():  # small tensors: one thread, the KD-tree queries the caller's
+        return _verify_loop(keyframes, first, second, config)
+
+
+def _verify_loop(
+    keyframes: list[Keyframe], first: int, second: int, config: SLAMConfig
+) -> LoopClosure:
     fn = "verify_loop"
     for name, value in (("first", first), ("second", second)):
         _checks.check_int(fn, name, value, minimum=0, maximum=len(keyframes) - 1)

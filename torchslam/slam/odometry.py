@@ -208,6 +208,13 @@ class Odometry:
                 array); non-finite rows are dropped (counted in :attr:`FrameInfo.dropped`).
             timestamp: optional time of the frame (seconds), kept in :attr:`frames`.
         """
+        # The per-frame tensors are small: their algebra runs on one thread and only the
+        # KD-tree queries use the caller's threads (registration.icp's policy; a second
+        # OpenMP thread on a shared core made a frame 1.4× slower).
+        with _icp._host_threads():
+            return self._add(points, timestamp)
+
+    def _add(self, points: object, timestamp: float | None) -> Tensor:
         fn = "Odometry.add"
         tic = time.perf_counter()
         cloud, dropped = self._check_points(fn, points)
