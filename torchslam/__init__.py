@@ -35,6 +35,7 @@ __version__ = "0.1.0"
 _LAZY = (
     "alignment",
     "benchmark",
+    "cameras",
     "cli",
     "data",
     "demo",
