@@ -40,6 +40,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchslam.lie import se3
+
 ROOT = Path(__file__).resolve().parents[1]
 SEQUENCES = ("rgbd/7scenes-150-199", "lidar/hku2-loop", "lidar/quick-shack")
 
@@ -78,7 +80,7 @@ def run_torchslam(folder: Path, threads: int) -> tuple[dict, list[np.ndarray], s
     times_path = fio.find_timestamps(paths[0].parent)
     times = None if times_path is None else fio.read_timestamps(times_path, len(paths))
     slam = SLAM(config)
-    clouds, per_frame, rss = [], [], []
+    per_frame, rss, count = [], [], 0
     start = time.perf_counter()
     for i, path in enumerate(paths):
         tic = time.perf_counter()
@@ -92,7 +94,7 @@ def run_torchslam(folder: Path, threads: int) -> tuple[dict, list[np.ndarray], s
         slam.add(cloud, None if times is None else float(times[i]))
         per_frame.append(time.perf_counter() - tic)
         rss.append(_rss_mb())
-        clouds.append(cloud.numpy().astype(np.float32))
+        count += 1
     tic = time.perf_counter()
     result = slam.finish()
     finish = time.perf_counter() - tic
@@ -110,13 +112,71 @@ def run_torchslam(folder: Path, threads: int) -> tuple[dict, list[np.ndarray], s
         "loops_rejected": len(result.rejected_loops),
         "unreliable": sum(not f.trusted for f in result.frames),
     }
-    return record, clouds, sensor
+    return record, count, sensor
 
 
-def run_peers(python: str, clouds: list[np.ndarray], sensor: str, threads: int, work: Path):
+def run_planted(folder: Path) -> dict:
+    """The sequence once more with a planted wrong loop candidate (the two keyframes farthest
+    apart, verified by ICP as a detected candidate is) and a wrong closure forced into the
+    graph (the identity between them, as confident as an odometry step)."""
+    from torchslam.io import frames as fio
+    from torchslam.slam import SLAM, SLAMConfig
+
+    torch.set_num_threads(1)
+    paths, sensor = fio.list_frames(folder)
+    config = SLAMConfig.for_sensor(sensor)
+    K = fio.read_intrinsics(fio.find_intrinsics(folder)) if sensor == "depth" else None
+    slam = SLAM(config)
+    for path in paths:
+        if sensor == "depth":
+            cloud = fio.read_depth(
+                path, K, max_range=config.max_range, min_range=config.min_range,
+                stride=config.pixel_stride,
+            )  # fmt: skip
+            slam.add(cloud)
+        else:
+            slam.add(fio.read_points(path))
+    positions = torch.stack([kf.pose[:3, 3] for kf in slam.keyframes])
+    distance = torch.cdist(positions, positions)
+    a, b = sorted(int(i) for i in divmod(int(distance.argmax()), len(positions)))
+    verified = slam.add_loop(a, b)
+    forced = slam.add_loop(a, b, measurement=torch.eye(4, dtype=torch.float64))
+    result = slam.finish()
+    return {
+        "pair": (a, b),
+        "distance_m": float(distance[a, b]),
+        "candidate_accepted": bool(verified.accepted),
+        "candidate_reason": verified.reason,
+        "forced_kept": bool(forced.kept),
+        "poses": result.poses,
+        "frames": (result.keyframe_frames[a], result.keyframe_frames[b]),
+        "measurement": verified.measurement,
+    }
+
+
+def _clouds(folder: Path) -> list[np.ndarray]:
+    """The frames as torchslam reads them (depth: its stride and range), float32, for the
+    peers (read again here so that torchslam's RSS curve holds only what it keeps)."""
+    from torchslam.io import frames as fio
+    from torchslam.slam import SLAMConfig
+
+    paths, sensor = fio.list_frames(folder)
+    config = SLAMConfig.for_sensor(sensor)
+    if sensor == "depth":
+        K = fio.read_intrinsics(fio.find_intrinsics(folder))
+        read = lambda p: fio.read_depth(  # noqa: E731
+            p, K, max_range=config.max_range, min_range=config.min_range,
+            stride=config.pixel_stride,
+        )  # fmt: skip
+    else:
+        read = fio.read_points
+    return [read(p).numpy().astype(np.float32) for p in paths]
+
+
+def run_peers(python: str, folder: Path, sensor: str, threads: int, work: Path):
     frames = work / "frames.npz"
     if not frames.exists():
-        arrays = {f"frame_{k:06d}": c for k, c in enumerate(clouds)}
+        arrays = {f"frame_{k:06d}": c for k, c in enumerate(_clouds(folder))}
         np.savez(frames, sensor=np.array(sensor), **arrays)
     out = work / f"peers_{threads}.json"
     env = dict(os.environ)
@@ -141,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
         "--peers-python", default=str(ROOT.parent / "peers-venv" / "bin" / "python")
     )
     parser.add_argument("--no-peers", action="store_true")
+    parser.add_argument(
+        "--no-plant", action="store_true", help="skip the planted wrong loop closure runs"
+    )
     parser.add_argument("--out", type=Path, default=Path("out") / "slam_sequences")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -154,8 +217,8 @@ def main(argv: list[str] | None = None) -> int:
         work = args.out / name.replace("/", "_")
         work.mkdir(parents=True, exist_ok=True)
         for t in threads:
-            record, clouds, sensor = run_torchslam(folder, t)
-            reference = _reference(folder, len(clouds))
+            record, count, sensor = run_torchslam(folder, t)
+            reference = _reference(folder, count)
             odo = _errors(record["odometry_poses"], reference)
             final = _errors(record["poses"], reference)
             series.setdefault(name, record)
@@ -171,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
                 "max_rss_mb": max(record["rss_mb"]),
             })  # fmt: skip
             if peers:
-                for method, value in run_peers(args.peers_python, clouds, sensor, t, work).items():
+                for method, value in run_peers(args.peers_python, folder, sensor, t, work).items():
                     if "poses" not in value:
                         rows.append({"sequence": name, "method": method, "threads": t,
                                      "error": value.get("error")})  # fmt: skip
@@ -183,6 +246,26 @@ def main(argv: list[str] | None = None) -> int:
                         "reading": False,
                     })  # fmt: skip
             _print([r for r in rows if r["sequence"] == name and r["threads"] == t])
+        if not args.no_plant:
+            plant = run_planted(folder)
+            errors = _errors(plant.pop("poses"), reference)
+            fa, fb = plant.pop("frames")
+            truth = se3.compose(se3.inverse(reference[fa]), reference[fb])
+            off = se3.compose(se3.inverse(truth), plant.pop("measurement"))
+            plant["measurement_error_m"] = float(off[:3, 3].norm())
+            base = next(
+                r for r in rows if r["sequence"] == name and r["method"] == "torchslam SLAM"
+            )
+            rows.append({"sequence": name, "method": "planted", **plant, **errors})
+            print(
+                f"{name:<22} planted wrong candidate keyframes {plant['pair']} "
+                f"({plant['distance_m']:.1f} m apart): "
+                f"{'ACCEPTED' if plant['candidate_accepted'] else 'rejected'} "
+                f"({plant['candidate_reason']}; its ICP result is "
+                f"{plant['measurement_error_m']:.2f} m from the reference); forced wrong closure "
+                f"{'kept' if plant['forced_kept'] else 'dropped'}: ATE {errors['ate']:.4f} m "
+                f"vs {base['ate']:.4f} m ({100 * (errors['ate'] / base['ate'] - 1):+.1f} %)"
+            )
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     _plot(series, args.out / "time_rss.png")
     print(f"wrote {args.out / 'results.json'}, {args.out / 'time_rss.png'}")
