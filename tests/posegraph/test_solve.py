@@ -97,8 +97,9 @@ def ring(generator):
 def test_lm_reaches_the_optimum(ring, linear_solver):
     graph, _ = ring
     config = PoseGraphSolverConfig(linear_solver=linear_solver, **TIGHT)
-    result = solve_pose_graph(graph, config=config)
+    result = solve_pose_graph(graph, config=config, init="file")  # LM from the drifted start
     assert result.converged, result.summary()
+    assert result.initialization == "file"
     assert result.linear_solver == linear_solver
     assert result.final_cost < 0.1 * result.initial_cost
     # The cost history never increases (rejected steps repeat the cost).
@@ -378,7 +379,7 @@ def test_graph_as_a_relative_pose_term_reaches_the_same_optimum(ring, reduced_so
     import torchslam
 
     graph, _ = ring
-    reference = solve_pose_graph(graph, config=PoseGraphSolverConfig(**TIGHT))
+    reference = solve_pose_graph(graph, config=PoseGraphSolverConfig(**TIGHT), init="file")
     none = torch.zeros(1, 0, dtype=torch.int64)
     empty = graph.poses.new_zeros(1, 0, 3)
     problem = torchslam.PointMapProblem(
@@ -390,3 +391,19 @@ def test_graph_as_a_relative_pose_term_reaches_the_same_optimum(ring, reduced_so
     assert result.converged
     assert float(result.final_cost[0]) == pytest.approx(reference.final_cost, rel=1e-10)
     assert (se3.inverse(problem.poses()[0]) - reference.poses).abs().max() < 1e-8
+
+
+def test_default_start_is_the_chordal_relaxation_and_is_reported(ring):
+    # As the command line (issue 28 §4): from the chordal relaxation, aligned so that the
+    # gauge vertex stays at its file pose; the result says where it started.
+    graph, _ = ring
+    default = solve_pose_graph(graph, config=PoseGraphSolverConfig(**TIGHT))
+    assert default.initialization == "chordal" and default.converged
+    assert torch.equal(default.poses[0], graph.poses[0])
+    from_file = solve_pose_graph(graph, config=PoseGraphSolverConfig(**TIGHT), init="file")
+    # a ring with small noise has one optimum: both starts reach it (to the solver tolerance)
+    assert default.final_cost == pytest.approx(from_file.final_cost, rel=1e-8)
+    given = solve_pose_graph(graph, graph.poses, config=PoseGraphSolverConfig(**TIGHT))
+    assert given.initialization == "given"
+    with pytest.raises(ValueError, match="'init' must be"):
+        solve_pose_graph(graph, init="zero")
