@@ -387,3 +387,40 @@ def call_main(main, argv: list[str], capsys) -> tuple[int, str, str]:
         code = exit_.code
     out, err = capsys.readouterr()
     return code, out, err
+
+
+# ----------------------------------------------------------------------------- posegraph --certify
+
+
+def test_certify_writes_what_it_certified_and_says_so_under_quiet(ring, tmp_path, capsys):
+    from torchslam.io import g2o
+    from torchslam.posegraph import objectives
+
+    out = tmp_path / "opt.g2o"
+    code, stdout, err = call(["posegraph", str(ring), "--certify", "--out", str(out), "-q"], capsys)
+    assert code == 0, err
+    # -q: the verdict line only
+    assert stdout.startswith("certified global optimum: yes") and stdout.count("\n") == 1
+    objective = float(stdout.split("SE-Sync objective ")[1].split(" ")[0])
+    written = g2o.read_g2o(out)
+    # the file holds the certified (SE-Sync-refined) poses: its objective is the certified one
+    # to the 8 digits printed
+    value = float(objectives.sesync_objective(written, written.poses))
+    assert value == pytest.approx(objective, rel=1e-7)
+    code, stdout, _ = call(["posegraph", str(ring), "--certify", "--out", str(out)], capsys)
+    assert "(the SE-Sync-refined poses that were certified)" in stdout
+
+
+def test_not_certified_exits_3(ring, capsys, monkeypatch):
+    import dataclasses
+
+    from torchslam.posegraph import certification
+
+    real = certification.certify
+
+    def uncertain(*args, **kwargs):
+        return dataclasses.replace(real(*args, **kwargs), certified=False)
+
+    monkeypatch.setattr(certification, "certify", uncertain)
+    code, stdout, _ = call(["posegraph", str(ring), "--certify", "-q"], capsys)
+    assert code == 3 and stdout.startswith("certified global optimum: no")

@@ -18,6 +18,8 @@ Exit status:
 - 2: bad input: an impossible option value, a missing or malformed file, a figure asked for
   with ``--plot`` while matplotlib is missing. One line on stderr,
   ``torchslam <command>: error: …``, and never a traceback.
+- 3: ``posegraph --certify`` solved, but SE-Sync's certificate does not prove the optimum
+  global (the verdict line is printed even under ``--quiet``).
 - 130: interrupted (Ctrl-C).
 
 Threads (one policy for every subcommand): ``--threads N`` sets torch's intra-op threads for
@@ -55,6 +57,7 @@ __all__ = [
     "DEFAULT_THREADS",
     "EXIT_FAILED",
     "EXIT_INTERRUPTED",
+    "EXIT_NOT_CERTIFIED",
     "EXIT_OK",
     "EXIT_USAGE",
     "Parser",
@@ -72,6 +75,8 @@ EXIT_OK = 0
 DEFAULT_THREADS = 1
 EXIT_FAILED = 1
 EXIT_USAGE = 2
+# posegraph --certify: the solve succeeded but its optimum is not certified global
+EXIT_NOT_CERTIFIED = 3
 EXIT_INTERRUPTED = 130
 
 # Loggers of the library (documented in the README's "Logging" paragraph).
@@ -205,7 +210,7 @@ def _parser() -> Parser:
         prog="torchslam",
         description="ICP-SLAM as batched, differentiable least squares on SE(3).",
         epilog="Exit status: 0 success, 1 a solve failed (NON_FINITE, LINEAR_SOLVE_FAILED), "
-        "2 bad arguments or input files, 130 interrupted.",
+        "2 bad arguments or input files, 3 posegraph --certify: not certified, 130 interrupted.",
     )
     add_common_options(parser, top_level=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -361,8 +366,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "posegraph":
             from torchslam.cli import posegraph
 
-            result = posegraph.run_posegraph(posegraph.options_from_args(args), echo=echo)
-            return solve_exit_status([result.status], warn)
+            certificates: list = []
+            result = posegraph.run_posegraph(
+                posegraph.options_from_args(args), echo=echo, verdict=print,
+                on_certificate=certificates.append,
+            )  # fmt: skip
+            code = solve_exit_status([result.status], warn)
+            if code == EXIT_OK and certificates and not certificates[0].certified:
+                return EXIT_NOT_CERTIFIED
+            return code
         if args.command == "slam":
             from torchslam.cli import slam
 

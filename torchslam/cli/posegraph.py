@@ -164,9 +164,18 @@ def initial_poses(graph: PoseGraph, init: str) -> torch.Tensor:
 
 
 def run_posegraph(
-    options: PoseGraphOptions, echo: Callable[[str], None] = print
+    options: PoseGraphOptions,
+    echo: Callable[[str], None] = print,
+    *,
+    verdict: Callable[[str], None] | None = None,
+    on_certificate: Callable[[certification.Certificate], None] | None = None,
 ) -> PoseGraphSolveResult:
     """Run the command, printing through ``echo``; returns the solve result.
+
+    With ``certify``: the certificate line goes through ``verdict`` (default ``echo``; the
+    command prints it even under ``--quiet``), the certificate to ``on_certificate``, and
+    ``out`` receives the poses that were certified (for the chi2 objective, its solution
+    refined on the SE-Sync objective), as the output line says.
 
     Raises:
         ValueError: malformed file (the message names the line), bad option, broken chain,
@@ -183,10 +192,15 @@ def run_posegraph(
     if options.plot is not None:
         plots.check_figure_format(options.plot)  # before the solve, not after it
     with using_threads(options.threads):
-        return _run(options, echo)
+        return _run(options, echo, verdict or echo, on_certificate)
 
 
-def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSolveResult:
+def _run(
+    options: PoseGraphOptions,
+    echo: Callable[[str], None],
+    verdict: Callable[[str], None],
+    on_certificate: Callable[[certification.Certificate], None] | None,
+) -> PoseGraphSolveResult:
     with warnings.catch_warnings():  # the reader's warning: the summary below says it
         warnings.simplefilter("ignore", UserWarning)
         graph = g2o.read_g2o(options.path, information=options.information)
@@ -232,12 +246,17 @@ def _run(options: PoseGraphOptions, echo: Callable[[str], None]) -> PoseGraphSol
         f"linearization {result.linearize_seconds:.3f} s, "
         f"linear solves {result.linear_solve_seconds:.3f} s)"
     )
+    written, what = result.poses, ""
     if options.certify:
-        _certify(graph, result, options, echo)
+        certificate, written = _certify(graph, result, options, echo, verdict)
+        if on_certificate is not None:
+            on_certificate(certificate)
+        if options.objective != "sesync":
+            what = " (the SE-Sync-refined poses that were certified)"
     if options.out is not None:
         options.out.parent.mkdir(parents=True, exist_ok=True)
-        g2o.write_g2o(options.out, graph, result.poses)
-        echo(f"wrote {options.out}")
+        g2o.write_g2o(options.out, graph, written)
+        echo(f"wrote {options.out}{what}")
     write_covariance_option(options, graph, result, config, echo)
     if options.plot is not None:
         plot = options.plot if options.plot.suffix else options.plot.with_suffix(".png")
@@ -252,10 +271,11 @@ def _certify(
     result: PoseGraphSolveResult,
     options: PoseGraphOptions,
     echo: Callable[[str], None],
-) -> None:
-    """Print SE-Sync's certificate for the SE-Sync objective. The certificate concerns that
-    objective's optimum: a chi2 solution is first refined on the SE-Sync objective (LM from
-    the chi2 poses) and the refined poses are certified."""
+    verdict: Callable[[str], None],
+) -> tuple[certification.Certificate, torch.Tensor]:
+    """Print SE-Sync's certificate for the SE-Sync objective; returns it and the certified
+    poses. The certificate concerns that objective's optimum: a chi2 solution is first refined
+    on the SE-Sync objective (LM from the chi2 poses) and the refined poses are certified."""
     poses = result.poses
     if options.objective != "sesync":
         config = PoseGraphSolverConfig(
@@ -271,12 +291,13 @@ def _certify(
             f"({refined.status.name}, {refined.time_seconds:.3f} s)"
         )
     certificate = certification.certify(graph, poses)
-    echo(
+    verdict(
         f"certified global optimum: {'yes' if certificate.certified else 'no'} "
         f"(λ_min = {certificate.lambda_min:.3e}, η = {certificate.eta:.1e}; SE-Sync objective "
         f"{certificate.objective:.8g} ≥ f* ≥ {certificate.lower_bound:.8g}; "
         f"{certificate.seconds:.3f} s)"
     )
+    return certificate, poses
 
 
 # --- summary lines of the initializer and the information handling (issue 14) ---
