@@ -874,3 +874,19 @@ def test_to_casts_the_data_terms_and_losses_with_the_parameters():
     assert problem.data.observations.dtype == torch.float64
     # Back in float64 with the float32-rounded values: equal to float32 precision.
     torch.testing.assert_close(problem.cost().detach(), cost64, rtol=1e-5, atol=1e-6)
+
+
+def test_numpy_arrays_are_accepted_as_tensors():
+    # as register and the readers accept them (issue 28 §4): the same problem, bit for bit
+    scene, obs, vis = _scene_with_uneven_batch()
+    tensors = PointMapProblem.from_dense(scene.poses_gt, scene.points_gt, obs, vis)
+    arrays = PointMapProblem.from_dense(
+        scene.poses_gt.numpy(), scene.points_gt.numpy(), obs.numpy(), vis.numpy()
+    )
+    assert torch.equal(arrays.cost(), tensors.cost())
+    data = tensors.data
+    edges = PointMapProblem(
+        scene.poses_gt.numpy(), scene.points_gt.numpy(), data.pose_index.numpy(),
+        data.point_index.numpy(), data.observations.numpy(), valid=data.valid.numpy(),
+    )  # fmt: skip
+    assert torch.equal(edges.cost(), tensors.cost())

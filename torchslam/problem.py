@@ -93,6 +93,15 @@ class PointMapProblem(nn.Module):
     ) -> None:
         super().__init__()
         fn = "PointMapProblem"
+        # numpy arrays are accepted (as by register and the readers): copied to tensors
+        like = _checks.first_tensor(poses, points, observations)
+        poses, points, pose_index, point_index, observations, valid, weights = (
+            _checks.from_numpy(x, like)
+            for x in (poses, points, pose_index, point_index, observations, valid, weights)
+        )
+        fixed_poses, fixed_points = (
+            _checks.from_numpy(x, like) for x in (fixed_poses, fixed_points)
+        )
         _checks.check_batched(fn, "poses", poses, ("B", "m"), (4, 4))
         _checks.check_batched(fn, "points", points, ("B", "n"), (3,))
         _checks.check_batched(fn, "observations", observations, ("B", "E"), (3,))
@@ -198,6 +207,13 @@ class PointMapProblem(nn.Module):
         Internally the visible entries become padded edge lists, sorted by (pose, point).
         """
         fn = "PointMapProblem.from_dense"
+        like = _checks.first_tensor(poses, points, observations)
+        poses, points, observations, visibility, weights = (
+            _checks.from_numpy(x, like) for x in (poses, points, observations, visibility, weights)
+        )
+        fixed_poses, fixed_points = (
+            _checks.from_numpy(x, like) for x in (fixed_poses, fixed_points)
+        )
         _checks.check_tensor(fn, "observations", observations, (3,), min_batch_dims=3, dims="Bmn")
         if observations.dim() != 4:
             raise ValueError(
