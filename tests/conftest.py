@@ -1,9 +1,17 @@
-"""Shared fixtures: a seeded generator, dtype and device parametrizations."""
+"""Shared fixtures: a seeded generator, dtype and device parametrizations; the data sets'
+offline mirror (``TORCHSLAM_DATA_MIRROR``, when unset: the project's ``../shared/data``)."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
 import torch
+
+_SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+if "TORCHSLAM_DATA_MIRROR" not in os.environ and _SHARED.is_dir():
+    os.environ["TORCHSLAM_DATA_MIRROR"] = str(_SHARED)
 
 
 @pytest.fixture

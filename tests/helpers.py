@@ -65,3 +65,15 @@ def load_example(name: str):
         sys.modules[module_name] = module
         spec.loader.exec_module(module)
     return sys.modules[module_name]
+
+
+def dataset_folder(name: str) -> Path:
+    """The folder of a named data set (torchslam.data.files), mirrored or cached, checked by
+    sha256; never downloads. A path that does not exist when the data set is unavailable (the
+    data tests check ``is_dir()`` and skip)."""
+    from torchslam.data import files
+
+    try:
+        return files.fetch(name, download=False)
+    except files.DatasetUnavailableError:
+        return Path(f"<data set {name!r} unavailable: torchslam data fetch {name}>")

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam import registration
 from torchslam.cli import register as register_command
 from torchslam.io.ply import read_ply, write_ply
@@ -24,7 +25,7 @@ from torchslam.lie import convert, se3, so3
 from torchslam.registration import icp
 
 VOXEL = 0.04
-BUNNY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
+BUNNY = dataset_folder("bunny")
 
 # centre, radii of the critter's ellipsoids
 PARTS = (

@@ -8,20 +8,20 @@ from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 import torchslam as ts
+from tests.helpers import dataset_folder
 from torchslam import registration
 from torchslam.io import trajectories
 from torchslam.io.stanford import pose_errors, read_conf
 from torchslam.lie import se3
 from torchslam.registration import icp
 
-BUNNY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
+BUNNY = dataset_folder("bunny")
 NAMES = ["bun000", "bun045", "top3"]
 needs_bunny = pytest.mark.skipif(
     not (BUNNY / "bun.conf").is_file(), reason=f"no Stanford bunny data at {BUNNY.resolve()}"

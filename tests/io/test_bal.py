@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import bz2
-from pathlib import Path
 
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam.io.bal import BALProblem, read_bal, write_bal
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "bal"
+DATA = dataset_folder("bal-ladybug-21")
 
 SMALL = """2 3 4
 0 0 -1.5e+01 2.0

@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam.io import g2o
 from torchslam.lie import se3
 from torchslam.posegraph import PoseGraph, between, initialization, objectives
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "posegraph"
+DATA = dataset_folder("posegraph")
 
 
 def _graph(

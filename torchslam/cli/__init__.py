@@ -2,8 +2,8 @@
 
 Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure),
 ``bench`` (the solver benchmark), ``posegraph`` (optimize a g2o pose graph), ``register``
-(multiview registration of range scans) and ``slam`` (ICP-SLAM on a sequence of depth images or
-LiDAR scans).
+(multiview registration of range scans), ``slam`` (ICP-SLAM on a sequence of depth images or
+LiDAR scans) and ``data`` (the named real data sets).
 
 Options of every subcommand (and of ``torchslam`` itself): ``--quiet`` (only warnings and
 errors, on stderr), ``--verbose`` (also the library's log records: loggers
@@ -224,6 +224,7 @@ def _parser() -> Parser:
         "and write demo.png (needs matplotlib; skipped with a message without it).",
     )
     from torchslam.cli import bench as bench_command
+    from torchslam.cli import data as data_command
     from torchslam.cli import demo as demo_command
     from torchslam.cli import posegraph as posegraph_command
     from torchslam.cli import register as register_command
@@ -273,6 +274,16 @@ def _parser() -> Parser:
     )
     slam_command.add_arguments(slam)
     add_common_options(slam)
+
+    data = sub.add_parser(
+        "data",
+        help="list, fetch or locate the named real data sets",
+        description="The real data sets of the examples and tests (torchslam.data.files): "
+        "list them, fetch them (checked by sha256; TORCHSLAM_DATA sets the cache folder, "
+        "TORCHSLAM_DATA_MIRROR an offline mirror), or print a data set's folder.",
+    )
+    data_command.add_arguments(data)
+    add_common_options(data)
     return parser
 
 
@@ -375,6 +386,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             if code == EXIT_OK and certificates and not certificates[0].certified:
                 return EXIT_NOT_CERTIFIED
             return code
+        if args.command == "data":
+            from torchslam.cli import data
+
+            return data.run(args, echo=echo, warn=warn)
         if args.command == "slam":
             from torchslam.cli import slam
 
