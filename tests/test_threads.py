@@ -19,11 +19,30 @@ def _problem(case: str) -> ts.PointMapProblem:
 
 
 @pytest.fixture
-def two_threads():
+def two_threads(monkeypatch):
+    # a quiet 2-core machine, whatever this one is doing (the load is tested on its own below)
+    monkeypatch.setattr(_threads, "usable_cores", lambda: 2)
+    monkeypatch.setattr(_threads, "busy_cores", lambda: 0)
     previous = torch.get_num_threads()
     torch.set_num_threads(2)
     yield
     torch.set_num_threads(previous)
+
+
+def test_a_large_solve_leaves_the_busy_cores_alone(two_threads, monkeypatch):
+    data = _problem("M").data
+    monkeypatch.setattr(_threads, "busy_cores", lambda: 1)  # another process keeps one busy
+    with _threads.threads_for(data):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == 2
+    monkeypatch.setattr(_threads, "usable_cores", lambda: 8)  # a larger machine has room
+    with _threads.threads_for(data):
+        assert torch.get_num_threads() == 2
+    assert _threads.available_threads(1) == 1
+
+
+def test_busy_cores_reads_a_count():
+    assert _threads.busy_cores() >= 0 and _threads.usable_cores() >= 1
 
 
 def test_small_problem_runs_on_one_thread_and_restores(two_threads):

@@ -14,12 +14,20 @@ construction (its argument checks and gauge) follows the same rule. The count is
 exit. Like
 ``torch.set_num_threads`` itself this is a process setting: do not change torch's thread count
 from another Python thread while a solve runs.
+
+A larger solve does not take the cores that other work keeps busy either
+(:func:`available_threads`): each OpenMP region would wait for them. On Linux the number of
+runnable tasks (``/proc/loadavg``, an instantaneous count, not the averages) less this one is
+subtracted from the cores this process may use; with one of two cores spinning in another
+process, case M of ``torchslam bench`` took 5.3× longer on 2 threads than on 1, and
+``solve_pose_graph`` on parking-garage 2.1× (``experiments/threads_under_load.py``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import os
 from collections.abc import Iterator
 
 import torch
@@ -27,7 +35,39 @@ import torch
 from torchslam._batched import GRAIN_SIZE
 from torchslam.objective.data import PointMapData
 
-__all__ = ["GRAIN_SIZE", "solve_entries", "threads_for", "threads_for_entries"]
+__all__ = [
+    "GRAIN_SIZE",
+    "available_threads",
+    "busy_cores",
+    "solve_entries",
+    "threads_for",
+    "threads_for_entries",
+]
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def busy_cores() -> int:
+    """Tasks that are runnable now besides the caller (Linux: the fourth field of
+    ``/proc/loadavg``, minus one); 0 where the OS does not say."""
+    try:
+        with open("/proc/loadavg", encoding="ascii") as f:
+            running = int(f.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+    return max(0, running - 1)
+
+
+def available_threads(requested: int) -> int:
+    """``requested`` threads, less the cores that other work keeps busy now (at least 1)."""
+    if requested <= 1:
+        return max(1, requested)
+    return max(1, min(requested, usable_cores() - busy_cores()))
 
 
 def solve_entries(data: PointMapData) -> int:
@@ -57,10 +97,14 @@ def threads_for_entries(entries: int) -> Iterator[None]:
     """:func:`threads_for` for work whose largest per-operation tensor has ``entries``
     entries (a problem's construction and checks)."""
     threads = torch.get_num_threads()
-    if threads == 1 or entries >= GRAIN_SIZE:
+    if threads == 1:
         yield
         return
-    torch.set_num_threads(1)
+    target = available_threads(threads) if entries >= GRAIN_SIZE else 1
+    if target == threads:
+        yield
+        return
+    torch.set_num_threads(target)
     try:
         yield
     finally:

@@ -284,7 +284,16 @@ def marginal_covariances_tensors(
     )
 
 
-def _marginals(
+def _marginals(*args: object) -> MarginalCovariances:
+    """The work of the two entry points, under the solve's thread policy (torchslam._threads:
+    one thread for small problems, never the cores other work keeps busy)."""
+    from torchslam._threads import threads_for
+
+    with threads_for(args[3]):  # data
+        return _marginals_work(*args)  # type: ignore[arg-type]
+
+
+def _marginals_work(
     fn: str,
     pose_tangent: Tensor,
     points: Tensor,

@@ -115,10 +115,13 @@ def query_workers(count: int | None = None) -> int:
     """Threads of the KD-tree queries: ``torch.get_num_threads()`` (of the caller, where ICP
     runs its own algebra on one thread), so that one setting (``torch.set_num_threads``,
     ``--threads``) governs the whole front end; 1 for a query of fewer than
-    :data:`QUERY_GRAIN` points (``count``)."""
+    :data:`QUERY_GRAIN` points (``count``); never more than the cores other work leaves free
+    (:func:`torchslam._threads.available_threads`)."""
     if count is not None and count < QUERY_GRAIN:
         return 1
-    return _WORKERS[-1] if _WORKERS else max(1, torch.get_num_threads())
+    from torchslam._threads import available_threads  # the cores other work leaves free
+
+    return available_threads(_WORKERS[-1] if _WORKERS else max(1, torch.get_num_threads()))
 
 
 def nearest_neighbors(
