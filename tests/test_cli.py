@@ -308,9 +308,10 @@ def test_quiet_prints_nothing(where, ring, tmp_path, capsys):
 def test_verbose_prints_the_library_log_records(ring, capsys):
     logger = logging.getLogger("torchslam")
     level, handlers = logger.level, list(logger.handlers)
-    code, _, err = call(["posegraph", str(ring), "--verbose"], capsys)
+    code, out, err = call(["posegraph", str(ring), "--verbose"], capsys)
     assert code == 0
     assert "torchslam.posegraph: iter   1" in err
+    assert "accepted" not in out  # each iteration once: the log record, not the table line too
     code, _, err = call(["--verbose", *TINY_DEMO, "--out", str(ring.parent)], capsys)
     assert code == 0 and "torchslam.solver: iter   1" in err
     assert logger.level == level and logger.handlers == handlers  # restored after the run

@@ -9,6 +9,7 @@ printing one progress line per iteration, then prints a summary table and writes
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -228,6 +229,8 @@ def _run_demo(
         cost = float(info.cost.sum())
         decrease = (previous[0] - cost) / previous[0] if previous[0] > 0 else 0.0
         previous[0] = cost
+        if logging.getLogger("torchslam.solver").isEnabledFor(logging.INFO):
+            return  # --verbose: the solver's log record says it (not twice)
         echo(
             f"{info.iteration:4d} {cost:13.6e} {decrease:13.3e} "
             f"{float(info.damping.max()):9.2e} {float(info.step_norm.max()):9.2e} "

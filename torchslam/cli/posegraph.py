@@ -12,6 +12,7 @@ before and after (x-y and x-z projections of the vertex positions, and the cost 
 from __future__ import annotations
 
 import argparse
+import logging
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -216,6 +217,8 @@ def _run(
 
     def progress(info: IterationInfo) -> None:
         # One graph: the batch of the loop's IterationInfo has one problem.
+        if logging.getLogger("torchslam.posegraph").isEnabledFor(logging.INFO):
+            return  # --verbose: the solver's log record says it (not twice)
         echo(
             f"{info.iteration:4d} {float(info.cost[0]):14.8g} {float(info.damping[0]):9.2e} "
             f"{float(info.step_norm[0]):9.2e} "
