@@ -53,7 +53,7 @@ from torchslam.solver.linearize import linearize, whitening_factors
 from torchslam.solver.plan import LinearPlan, choose_reduced_solver
 from torchslam.solver.sparse import BlockPattern
 
-OUT = Path(__file__).resolve().parents[1] / "out" / "bench_sparse.json"
+OUT = Path("out") / "bench_sparse.json"  # under the working directory
 
 
 def build_problem(

@@ -53,7 +53,7 @@ from torchslam.lie import se3, so3
 from torchslam.metrics import evaluate
 from torchslam.solver.differentiable import solve_differentiable
 
-OUT = Path(__file__).resolve().parents[1] / "out"
+OUT = Path("out")  # under the working directory
 NUM_POSES, NUM_POINTS, VISIBLE, OUTLIERS = 8, 150, 0.5, 0.25
 NOISE_PER_SQUARED_METRE = 0.0015  # σ = 0.0015 · range²
 TRAIN_SCENES, TEST_SCENES, BATCH = 64, 32, 8
@@ -356,7 +356,7 @@ def main() -> int:
         print(json.dumps(probe_backward(args.probe_backward)))
         return 0
     torch.manual_seed(args.seed)
-    OUT.mkdir(exist_ok=True)
+    OUT.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
 
     train = make_scenes(args.train_scenes, seed=1000 + args.seed)

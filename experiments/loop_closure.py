@@ -52,7 +52,7 @@ from torchslam.metrics import evaluate
 from torchslam.objective.terms import RelativePoseTerm
 
 OBJECTIVES = ("points", "points+odometry", "points+odometry+loop")
-OUT = Path(__file__).resolve().parents[1] / "out"
+OUT = Path("out")  # under the working directory
 
 
 def initial_guess(loop: LoopScene) -> tuple[torch.Tensor, torch.Tensor]:

@@ -48,7 +48,7 @@ import learn_weights as lw  # the experiment: scenes, features, model, loss
 from torchslam.lie import se3
 from torchslam.metrics import evaluate
 
-OUT = Path(__file__).resolve().parents[1] / "out"
+OUT = Path("out")  # under the working directory
 # The Cauchy scale learn_weights.py selects on its training scenes (its scale sweep).
 CAUCHY_SCALE = 0.01
 
