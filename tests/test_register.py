@@ -376,9 +376,9 @@ def test_load_scans_reads_the_formats_users_have(tmp_path):
     assert torch.equal(clouds[0], torch.from_numpy(cloud))
     for other in clouds[1:]:
         assert torch.equal(other, torch.from_numpy(np.delete(cloud, 5, axis=0)))
-    (tmp_path / "e.las").write_bytes(b"LASF")
+    (tmp_path / "e.e57").write_bytes(b"ASTM-E57")
     with pytest.raises(ValueError, match=r"\.pcd, \.bin, \.ply"):
-        registration.load_scans([paths[0], tmp_path / "e.las"])
+        registration.load_scans([paths[0], tmp_path / "e.e57"])
 
 
 def test_load_scans_drops_nan_points_of_a_ply_or_refuses_them(tmp_path):

@@ -374,9 +374,9 @@ def test_empty_file_is_refused(tmp_path, suffix):
 
 
 def test_unknown_suffix_lists_the_accepted_ones(tmp_path):
-    path = tmp_path / "cloud.las"
+    path = tmp_path / "cloud.e57"
     path.write_bytes(b"1 2 3\n")
-    with pytest.raises(ValueError, match=r"cloud\.las.*'\.las'") as info:
+    with pytest.raises(ValueError, match=r"cloud\.e57.*'\.e57'") as info:
         read_points(path)
     for suffix in POINT_SUFFIXES:
         assert suffix in str(info.value)
@@ -740,3 +740,20 @@ def test_real_seven_scenes_depth_frame():
     assert bool((z > 0).all()) and bool((z <= 10.0).all())
     paths, sensor = list_frames(folder)
     assert sensor == "depth" and paths[0] == path
+
+
+def test_las_points_are_read_scaled(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.array([100.0, 200.0, 0.0])
+    data = laspy.LasData(header)
+    xyz = np.array([[100.5, 200.25, 1.0], [101.0, 199.0, -2.5]])
+    data.x, data.y, data.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    data.write(tmp_path / "scan.las")
+    points = read_points(tmp_path / "scan.las")
+    # the file stores integers of 1 mm: the coordinates come back to that resolution
+    np.testing.assert_allclose(points.numpy(), xyz, rtol=0, atol=1e-9)
+    (tmp_path / "bad.las").write_bytes(b"LASF" + b"\x00" * 20)
+    with pytest.raises(ValueError, match=r"bad\.las"):
+        read_points(tmp_path / "bad.las")

@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 DEPTH_SUFFIXES = (".png", ".tif", ".tiff", ".pgm")
-POINT_SUFFIXES = (".pcd", ".bin", ".ply", ".npy", ".xyz", ".txt", ".pts")
+POINT_SUFFIXES = (".pcd", ".bin", ".ply", ".npy", ".xyz", ".txt", ".pts", ".las", ".laz")
 # The suffixes a folder of LiDAR frames is scanned for (text files hold timestamps and poses too).
 _FOLDER_POINT_SUFFIXES = (".pcd", ".bin", ".ply", ".npy")
 _INTRINSICS_NAMES = ("camera-intrinsics.txt", "intrinsics.txt", "K.txt", "camera.txt")
@@ -326,9 +326,29 @@ def _npy_points(fn: str, where: str) -> np.ndarray:
     return array[:, :3].astype(np.float64)
 
 
+def _las_points(fn: str, where: str) -> np.ndarray:
+    try:
+        import laspy
+    except ImportError:
+        raise ImportError(
+            f"{fn}: reading LAS/LAZ files needs laspy: pip install 'torchslam[las]'"
+        ) from None
+    try:
+        data = laspy.read(where)
+    except Exception as error:  # laspy raises many types for a malformed file
+        raise _error(
+            fn, where, f"not a readable LAS file ({type(error).__name__}: {error})"
+        ) from None
+    # x, y, z: the scaled, offset coordinates (the file's units)
+    return np.stack([np.asarray(data.x), np.asarray(data.y), np.asarray(data.z)], axis=1).astype(
+        np.float64
+    )
+
+
 _READERS = {
     ".pcd": _pcd_points, ".bin": _bin_points, ".ply": _ply_points, ".npy": _npy_points,
     ".xyz": _text_points, ".txt": _text_points, ".pts": _text_points,
+    ".las": _las_points, ".laz": _las_points,
 }  # fmt: skip
 
 
@@ -343,7 +363,8 @@ def read_points(
 
     Formats by suffix: ``.pcd`` (``pypcd4``: ascii, binary, binary_compressed), ``.bin`` (KITTI
     velodyne: float32 x y z intensity), ``.ply`` (any vertex with x, y, z), ``.npy`` (an (N, ≥3)
-    array), ``.xyz``/``.txt``/``.pts`` (text, x y z first on each line).
+    array), ``.xyz``/``.txt``/``.pts`` (text, x y z first on each line), ``.las``/``.laz``
+    (``laspy``, the optional extra ``torchslam[las]``: scaled coordinates).
 
     Args:
         nonfinite: ``"drop"`` (default) removes points with a NaN/±Inf coordinate; ``"raise"``
