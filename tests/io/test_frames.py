@@ -757,3 +757,12 @@ def test_las_points_are_read_scaled(tmp_path):
     (tmp_path / "bad.las").write_bytes(b"LASF" + b"\x00" * 20)
     with pytest.raises(ValueError, match=r"bad\.las"):
         read_points(tmp_path / "bad.las")
+
+
+def test_las_without_laspy_says_how_to_install(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "laspy", None)  # import laspy raises ImportError
+    (tmp_path / "scan.las").write_bytes(b"LASF" + b"\x00" * 20)
+    with pytest.raises(ImportError, match=r"torchslam\[las\]"):
+        read_points(tmp_path / "scan.las")
