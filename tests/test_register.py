@@ -399,3 +399,14 @@ def test_load_scans_drops_nan_points_of_a_ply_or_refuses_them(tmp_path):
     (tmp_path / "empty.ply").write_bytes(b"")
     with pytest.raises(ValueError, match="empty"):
         registration.load_scans([tmp_path / "b.ply", tmp_path / "empty.ply"])
+
+
+def test_progress_bar_goes_to_stderr_and_changes_nothing(capsys):
+    _, clouds = critter_scans(num_scans=3, points=600)
+    config = registration.RegisterConfig(voxel_size=0.08, hypotheses=8, rounds=0)
+    quiet = registration.register(["a", "b", "c"], clouds, config)
+    capsys.readouterr()
+    barred = registration.register(["a", "b", "c"], clouds, config, progress_bar=True)
+    out, err = capsys.readouterr()
+    assert "coarse alignment of all pairs" in err and "3/3" in err and out == ""
+    assert torch.equal(barred.poses, quiet.poses)

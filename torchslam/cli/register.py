@@ -160,7 +160,8 @@ def _run(
         prefix = "     " if line.startswith(" ") else next(stage, "     ")
         echo(f"{prefix} {line}")
 
-    registration = register(names, clouds, config, frame=frame, progress=progress)
+    bar = echo is print and sys.stderr.isatty()  # not under --quiet, not into a file
+    registration = register(names, clouds, config, frame=frame, progress=progress, progress_bar=bar)
     bad = [
         n
         for n, T, T0 in zip(names, registration.poses, registration.chained, strict=True)

@@ -265,11 +265,24 @@ def register_chain(
     return ChainResult(relative_t, icp.chain_poses(relative_t), results, seconds)
 
 
+def _bar(items: list, description: str, enabled: bool):
+    """``items``, under a tqdm progress bar on stderr when ``enabled``."""
+    if not enabled or not items:
+        return items
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(items, desc=description, unit="pair", leave=False, file=sys.stderr)
+
+
 def register_tree(
     clouds: Sequence[Tensor],
     config: RegisterConfig | None = None,
     progress: Progress | None = None,
     names: Sequence[str] | None = None,
+    *,
+    progress_bar: bool = False,
 ) -> ChainResult:
     """Initial poses of scans in any order: coarse alignment of every pair, an overlap graph
     and its maximum spanning tree.
@@ -295,6 +308,7 @@ def register_tree(
             ``stages``, ``candidates``).
         progress: called with one line per step.
         names: scan names for the progress lines.
+        progress_bar: a tqdm bar on stderr over the pairs of the coarse and fine stages.
 
     A pair joining two groups of scans is left out when most other registered pairs between
     those groups (weighted by their scores) contradict it — unless no other pair joins them.
@@ -324,7 +338,8 @@ def register_tree(
     coarse = torch.full((m, m), math.nan, dtype=torch.float64)
     kept: dict[tuple[int, int], Tensor] = {}
     first = stages[0]
-    for i, k in itertools.combinations(range(m), 2):
+    all_pairs = list(itertools.combinations(range(m), 2))
+    for i, k in _bar(all_pairs, "coarse alignment of all pairs", progress_bar):
         (src, tgt), normals = (levels[0][0][k], levels[0][0][i]), levels[0][1][i]
         initial = icp.initial_guesses(clouds[k], clouds[i], rotations)
         runs = icp._run(fn, src, tgt, initial, first.config, normals)
@@ -346,7 +361,7 @@ def register_tree(
     fine = torch.full((m, m), math.nan, dtype=torch.float64)
     results: dict[tuple[int, int], tuple[icp.ICPResult, float]] = {}
     tic = time.perf_counter()
-    for i, k in sorted(candidates):
+    for i, k in _bar(sorted(candidates), "refining the candidate pairs", progress_bar):
         start = time.perf_counter()
         hypotheses = kept[(i, k)]
         best = None
@@ -948,6 +963,7 @@ def register(
     *,
     frame: int | str = 0,
     progress: Progress | None = None,
+    progress_bar: bool = False,
 ) -> Registration:
     """The whole pipeline (module docstring) on scans in any order and any unit.
 
@@ -967,6 +983,7 @@ def register(
         config: options.
         frame: index or name of the scan whose frame the poses are expressed in.
         progress: called with one line per stage (and per pair and round).
+        progress_bar: a tqdm bar on stderr over the pairs of the all-pairs stages.
 
     Returns:
         :class:`Registration` (check :attr:`Registration.ok`).
@@ -1010,10 +1027,12 @@ def register(
     if config.order == "any":
         # Name order inside: the result is the same for any input order.
         order = sorted(range(len(names)), key=lambda k: names[k])
-        inner = _register([names[k] for k in order], [clouds[k] for k in order], config, say)
+        inner = _register(
+            [names[k] for k in order], [clouds[k] for k in order], config, say, progress_bar
+        )
         inner = _permuted(inner, order)
     else:
-        inner = _register(names, clouds, config, say)
+        inner = _register(names, clouds, config, say, progress_bar)
     chain, refinement, small, overlap, seconds = inner
     distance = config.voxel
     # The consistency check uses the clouds the joint problem saw (boundary points removed).
@@ -1040,7 +1059,11 @@ def register(
 
 
 def _register(
-    names: list[str], clouds: list[Tensor], config: RegisterConfig, say: Progress
+    names: list[str],
+    clouds: list[Tensor],
+    config: RegisterConfig,
+    say: Progress,
+    progress_bar: bool = False,
 ) -> tuple[ChainResult, RefineResult, list[Tensor], Tensor, dict[str, float]]:
     """Pairwise initial poses, overlapping pairs, joint refinement (scans in working order)."""
     seconds: dict[str, float] = {}
@@ -1050,7 +1073,9 @@ def _register(
         chain = register_chain(clouds, config, lambda line: say("  " + line), names)
     else:
         say(f"pairwise ICP, scans in any order: {len(clouds)} scans …")
-        chain = register_tree(clouds, config, lambda line: say("  " + line), names)
+        chain = register_tree(
+            clouds, config, lambda line: say("  " + line), names, progress_bar=progress_bar
+        )
     seconds["chain"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
