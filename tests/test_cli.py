@@ -365,7 +365,7 @@ def test_register_without_matplotlib_writes_the_rest(no_matplotlib, tmp_path, ca
     assert err.strip() == f"torchslam register: {SKIPPED}"
     assert "registration.png" not in stdout
     assert "s0 ← s1 (1/1): converged" in stdout  # the ICP status by name
-    assert {p.name for p in out.iterdir()} == {"poses.txt", "poses_chained.txt", "merged.ply"}
+    assert {p.name for p in out.iterdir()} == {"poses.txt", "poses_pairwise.txt", "merged.ply"}
 
 
 # ----------------------------------------------------------------------------- entry points

@@ -267,7 +267,7 @@ def test_cli_writes_outputs_and_error_table(critter, tmp_path, capsys):
     stdout = capsys.readouterr().out
     for stage in ("[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"):
         assert stage in stdout
-    assert "chain rot°" in stdout and "mean" in stdout and "max" in stdout
+    assert "pairwise rot°" in stdout and "mean" in stdout and "max" in stdout
     assert "1-σ pose uncertainty" in stdout and "rotation" in stdout
 
     read_names, poses = read_poses(out / "poses.txt")
@@ -282,7 +282,7 @@ def test_cli_writes_outputs_and_error_table(critter, tmp_path, capsys):
     assert len(np.unique(rgb, axis=0)) == 4  # one colour per scan
     assert sum("scan view" in c for c in merged.comments) == 4
     assert (out / "registration.png").stat().st_size > 20_000
-    assert (out / "poses_chained.txt").is_file()
+    assert (out / "poses_pairwise.txt").is_file()
 
 
 @pytest.mark.parametrize(

@@ -255,10 +255,12 @@ def _parser() -> Parser:
 
     register = sub.add_parser(
         "register",
-        help="register range scans (PLY) by pairwise ICP + joint ICP-SLAM",
-        description="Multiview registration: pairwise ICP along the given scan order, chained "
-        "poses, point tracks, then the joint ICP-SLAM least-squares solve (robust), "
-        "re-associated a few rounds. Writes poses.txt, merged.ply and registration.png.",
+        help="register range scans (PLY, PCD, XYZ, NPY, BIN, LAS) by pairwise ICP + joint ICP-SLAM",
+        description="Multiview registration: pairwise ICP over all pairs of scans in any order "
+        "(their spanning tree; --chain: along the given order) for the initial poses, point "
+        "tracks, then the joint ICP-SLAM least-squares solve (robust), re-associated a few "
+        "rounds. Writes poses.txt (joint), poses_pairwise.txt (initial), merged.ply and "
+        "registration.png.",
     )
     register_command.add_arguments(register)
     add_common_options(register)

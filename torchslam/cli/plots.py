@@ -339,15 +339,20 @@ def merged_cloud(clouds: Sequence[Tensor], poses: Tensor) -> tuple[np.ndarray, n
     return np.concatenate(points), np.concatenate(rgb)
 
 
+def _order(registration: Registration) -> str:
+    """How the pairwise stage picked its pairs: "chain" or "spanning tree"."""
+    return "chain" if registration.config.order == "chain" else "spanning tree"
+
+
 def plot_registration(registration: Registration, path: str | os.PathLike) -> None:
-    """Figure of a registration: chained pairwise ICP (row 1) vs joint ICP-SLAM (row 2).
+    """Figure of a registration: pairwise ICP (row 1) vs joint ICP-SLAM (row 2).
 
     Columns: top view (x, z) and side view (x, y) of the merged downsampled cloud, coloured by
     scan, in the axes of the reference scan (mm for scans in metres, judged by a voxel size
     under 5 cm; otherwise the scans' units); a section, the slab
     |z − z_mid| < one voxel through the middle of the cloud, where misregistration shows as
     doubled contours; and two diagnostics: the histogram of point-to-plane distances between
-    overlapping scans (chained and joint, row 1) and the change of every pose from chained to
+    overlapping scans (pairwise and joint, row 1) and the change of every pose from pairwise to
     joint (row 2: rotation in degrees, translation in mm).
 
     Raises:
@@ -361,7 +366,7 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     scale, mm = (1000.0, "mm") if reg.voxel_size < 0.05 else (1.0, "units")
     voxel = reg.voxel_size * scale
     rows = (
-        ("chained pairwise ICP", reg.chained, reg.residual_chained),
+        (f"pairwise ICP ({_order(reg)})", reg.chained, reg.residual_chained),
         ("joint ICP-SLAM", reg.poses, reg.residual_joint),
     )
     worlds = [
@@ -427,7 +432,7 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
         x + 0.2, translation.numpy() * scale, 0.4, color="tab:orange", label=f"translation ({mm})"
     )
     ax.set_xticks(x, reg.names, rotation=60, fontsize=8)
-    ax.set_title(f"pose change chained → joint (frame {reg.names[reg.frame]})", fontsize=11)
+    ax.set_title(f"pose change pairwise → joint (frame {reg.names[reg.frame]})", fontsize=11)
     ax.legend(fontsize=8)
 
     handles = [
@@ -437,7 +442,7 @@ def plot_registration(registration: Registration, path: str | os.PathLike) -> No
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), frameon=False)
     fig.suptitle(
         f"{len(reg.names)} scans ({voxel:g} {mm} voxels) in the frame of "
-        f"{reg.names[reg.frame]}: chained pairwise ICP (top) vs joint ICP-SLAM (bottom)"
+        f"{reg.names[reg.frame]}: pairwise ICP, {_order(reg)} (top) vs joint ICP-SLAM (bottom)"
     )
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
     fig.savefig(path, dpi=100)

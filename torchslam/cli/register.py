@@ -3,8 +3,9 @@
 Reads the scans (any order and any unit; ``--chain`` when successive scans overlap), runs
 :func:`torchslam.registration.register` with one progress line per stage, pair and round, and
 writes to ``--out``: the poses and the initial (pairwise) poses in the ``--format`` of
-:mod:`torchslam.io.trajectories` (``poses.txt``/``poses_chained.txt`` for torchslam,
-``poses_tum.txt``/``poses_chained_tum.txt`` for tum, ``poses_kitti.txt``/… for kitti),
+:mod:`torchslam.io.trajectories` (``poses.txt``/``poses_pairwise.txt`` for torchslam,
+``poses_tum.txt``/``poses_pairwise_tum.txt`` for tum, ``poses_kitti.txt``/… for kitti: the joint
+poses and the initial ones of pairwise ICP, over a spanning tree or, with ``--chain``, a chain),
 ``merged.ply`` (all scans in the reference frame, one colour per scan) and
 ``registration.png`` (needs matplotlib; skipped with a message without it). With
 ``--reference`` (a Stanford ``.conf``) it also prints the per-scan error table of
@@ -175,7 +176,7 @@ def _run(
     echo(f"[5/5] writing {out} …")
     format = getattr(args, "format", "torchslam")
     suffix = "" if format == "torchslam" else f"_{format}"
-    written = [f"poses{suffix}.txt", f"poses_chained{suffix}.txt"]
+    written = [f"poses{suffix}.txt", f"poses_pairwise{suffix}.txt"]
     for file, poses in zip(written, (registration.poses, registration.chained), strict=True):
         write_trajectory(out / file, poses, format, names=names, frame=frame)
     points, colors = plots.merged_cloud(registration.clouds, registration.poses)
@@ -193,7 +194,7 @@ def _run(
         written.append("registration.png")
     echo(f"      {', '.join(written)}")
     echo(
-        f"point-to-plane RMS between overlapping scans: chained "
+        f"point-to-plane RMS between overlapping scans: pairwise "
         f"{registration.residual_chained:.4g} → joint {registration.residual_joint:.4g}"
     )
     if reference is not None:
@@ -202,7 +203,7 @@ def _run(
             names,
             registration.frame,
             reference_poses,
-            {"chain": registration.chained, "joint": registration.poses},
+            {"pairwise": registration.chained, "joint": registration.poses},
         )
         echo(
             f"errors vs {args.reference} in the frame of {frame} (translation × 1000: mm for "
