@@ -408,5 +408,6 @@ def test_progress_bar_goes_to_stderr_and_changes_nothing(capsys):
     capsys.readouterr()
     barred = registration.register(["a", "b", "c"], clouds, config, progress_bar=True)
     out, err = capsys.readouterr()
-    assert "coarse alignment of all pairs" in err and "3/3" in err and out == ""
+    # the bar's first draw (0 of 3 pairs) is certain; later ones depend on the time per pair
+    assert "coarse alignment of all pairs" in err and "0/3" in err and out == ""
     assert torch.equal(barred.poses, quiet.poses)
