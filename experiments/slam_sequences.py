@@ -69,32 +69,19 @@ def _errors(poses: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
     return trajectory_errors(poses, reference)
 
 
-def run_torchslam(folder: Path, threads: int) -> tuple[dict, list[np.ndarray], str]:
-    from torchslam.io import frames as fio
-    from torchslam.slam import SLAM, SLAMConfig
+def run_torchslam(folder: Path, threads: int) -> tuple[dict, int, str]:
+    from torchslam.slam import SLAM, SLAMConfig, frame_reader
 
     torch.set_num_threads(threads)
-    paths, sensor = fio.list_frames(folder)
-    config = SLAMConfig.for_sensor(sensor)
-    K = fio.read_intrinsics(fio.find_intrinsics(folder)) if sensor == "depth" else None
-    times_path = fio.find_timestamps(paths[0].parent)
-    times = None if times_path is None else fio.read_timestamps(times_path, len(paths))
-    slam = SLAM(config)
-    per_frame, rss, count = [], [], 0
+    read, count, times, sensor = frame_reader(folder)
+    slam = SLAM(SLAMConfig.for_sensor(sensor))
+    per_frame, rss = [], []
     start = time.perf_counter()
-    for i, path in enumerate(paths):
+    for i in range(count):
         tic = time.perf_counter()
-        if sensor == "depth":
-            cloud = fio.read_depth(
-                path, K, max_range=config.max_range, min_range=config.min_range,
-                stride=config.pixel_stride,
-            )  # fmt: skip
-        else:
-            cloud = fio.read_points(path)
-        slam.add(cloud, None if times is None else float(times[i]))
+        slam.add(read(i), None if times is None else float(times[i]))
         per_frame.append(time.perf_counter() - tic)
         rss.append(_rss_mb())
-        count += 1
     tic = time.perf_counter()
     result = slam.finish()
     finish = time.perf_counter() - tic
@@ -104,7 +91,7 @@ def run_torchslam(folder: Path, threads: int) -> tuple[dict, list[np.ndarray], s
         "odometry_poses": result.odometry_poses,
         "wall_s": wall,
         "finish_s": finish,
-        "ms_per_frame": 1000 * wall / len(paths),
+        "ms_per_frame": 1000 * wall / count,
         "frame_ms": [1000 * t for t in per_frame],
         "rss_mb": rss,
         "keyframes": len(result.keyframe_frames),
@@ -119,23 +106,13 @@ def run_planted(folder: Path) -> dict:
     """The sequence once more with a planted wrong loop candidate (the two keyframes farthest
     apart, verified by ICP as a detected candidate is) and a wrong closure forced into the
     graph (the identity between them, as confident as an odometry step)."""
-    from torchslam.io import frames as fio
-    from torchslam.slam import SLAM, SLAMConfig
+    from torchslam.slam import SLAM, SLAMConfig, frame_reader
 
     torch.set_num_threads(1)
-    paths, sensor = fio.list_frames(folder)
-    config = SLAMConfig.for_sensor(sensor)
-    K = fio.read_intrinsics(fio.find_intrinsics(folder)) if sensor == "depth" else None
-    slam = SLAM(config)
-    for path in paths:
-        if sensor == "depth":
-            cloud = fio.read_depth(
-                path, K, max_range=config.max_range, min_range=config.min_range,
-                stride=config.pixel_stride,
-            )  # fmt: skip
-            slam.add(cloud)
-        else:
-            slam.add(fio.read_points(path))
+    read, count, _, sensor = frame_reader(folder)
+    slam = SLAM(SLAMConfig.for_sensor(sensor))
+    for i in range(count):
+        slam.add(read(i))
     positions = torch.stack([kf.pose[:3, 3] for kf in slam.keyframes])
     distance = torch.cdist(positions, positions)
     a, b = sorted(int(i) for i in divmod(int(distance.argmax()), len(positions)))
@@ -157,20 +134,10 @@ def run_planted(folder: Path) -> dict:
 def _clouds(folder: Path) -> list[np.ndarray]:
     """The frames as torchslam reads them (depth: its stride and range), float32, for the
     peers (read again here so that torchslam's RSS curve holds only what it keeps)."""
-    from torchslam.io import frames as fio
-    from torchslam.slam import SLAMConfig
+    from torchslam.slam import frame_reader
 
-    paths, sensor = fio.list_frames(folder)
-    config = SLAMConfig.for_sensor(sensor)
-    if sensor == "depth":
-        K = fio.read_intrinsics(fio.find_intrinsics(folder))
-        read = lambda p: fio.read_depth(  # noqa: E731
-            p, K, max_range=config.max_range, min_range=config.min_range,
-            stride=config.pixel_stride,
-        )  # fmt: skip
-    else:
-        read = fio.read_points
-    return [read(p).numpy().astype(np.float32) for p in paths]
+    read, count, _, _ = frame_reader(folder)
+    return [read(i).numpy().astype(np.float32) for i in range(count)]
 
 
 def run_peers(python: str, folder: Path, sensor: str, threads: int, work: Path):

@@ -110,20 +110,27 @@ def check_intrinsics(fn: str, intrinsics: object, name: str = "intrinsics") -> T
     return torch.from_numpy(array.copy())
 
 
-def read_intrinsics(path: str | os.PathLike) -> Tensor:
-    """Read a camera matrix K (3, 3) float64 from a text file: 9 numbers (3 × 3, row-major, as
-    7-Scenes' ``camera-intrinsics.txt``) or 4 (fx fy cx cy); ``#`` comments are skipped."""
-    fn = "read_intrinsics"
-    where = _checks.check_path(fn, path, is_file=True)
-    with open(where, "rb") as f:
-        lines = _text.decode_lines(f.read(), where, fn, "text intrinsics file")
+def _numbers(fn: str, path: str | os.PathLike, kind: str) -> list[float]:
+    """Every number of a small text file, in order (``#`` comments skipped, commas as spaces);
+    errors name the file and the line."""
+    with open(path, "rb") as f:
+        lines = _text.decode_lines(f.read(), path, fn, kind)
     values: list[float] = []
     for number, raw in enumerate(lines, start=1):
         text = raw.split("#", 1)[0].replace(",", " ")
         try:
             values += [_text.parse_finite_float(t) for t in text.split()]
         except _text.TokenError as error:
-            raise _error(fn, where, f"line {number}: {error}") from None
+            raise _error(fn, path, f"line {number}: {error}") from None
+    return values
+
+
+def read_intrinsics(path: str | os.PathLike) -> Tensor:
+    """Read a camera matrix K (3, 3) float64 from a text file: 9 numbers (3 × 3, row-major, as
+    7-Scenes' ``camera-intrinsics.txt``) or 4 (fx fy cx cy); ``#`` comments are skipped."""
+    fn = "read_intrinsics"
+    where = _checks.check_path(fn, path, is_file=True)
+    values = _numbers(fn, where, "text intrinsics file")
     if len(values) not in (4, 9):
         raise _error(
             fn, where, f"expected 9 numbers (a 3×3 K) or 4 (fx fy cx cy), got {len(values)}"
@@ -543,13 +550,7 @@ def read_reference_poses(
             raise ValueError(f"{fn}: {where}: no *.pose.txt files")
         poses = []
         for file in files:
-            numbers: list[float] = []
-            lines = _text.decode_lines(file.read_bytes(), file, fn, "text pose file")
-            for number, raw in enumerate(lines, start=1):
-                try:
-                    numbers += [_text.parse_finite_float(t) for t in raw.split()]
-                except _text.TokenError as error:
-                    raise _error(fn, file, f"line {number}: {error}") from None
+            numbers = _numbers(fn, file, "text pose file")
             if len(numbers) not in (12, 16):
                 raise _error(fn, file, f"expected a 4×4 or 3×4 matrix, got {len(numbers)} numbers")
             T = np.eye(4)

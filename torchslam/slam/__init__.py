@@ -6,7 +6,8 @@ loop-closed trajectory.
 - :mod:`~torchslam.slam.odometry`: :class:`Odometry`, frame-to-model point-to-plane ICP;
 - :mod:`~torchslam.slam.loops`: loop-closure candidates and their verification;
 - :mod:`~torchslam.slam.backend`: the robust keyframe pose graph and the joint refinement;
-- :mod:`~torchslam.slam.pipeline`: :class:`SLAM` (streaming) and :func:`run_sequence`.
+- :mod:`~torchslam.slam.pipeline`: :class:`SLAM` (streaming), :func:`run_sequence` and the
+  reader it uses, :func:`frame_reader`.
 
 Poses are frame → world everywhere (as TUM and KITTI files hold them).
 """
@@ -15,7 +16,7 @@ from torchslam.slam.backend import BackendResult, optimize_keyframes
 from torchslam.slam.config import SLAMConfig
 from torchslam.slam.loops import LoopClosure, find_candidates, verify_loop
 from torchslam.slam.odometry import FrameInfo, FrameStatus, Keyframe, Odometry
-from torchslam.slam.pipeline import SLAM, SLAMResult, run_sequence
+from torchslam.slam.pipeline import SLAM, SLAMResult, frame_reader, run_sequence
 
 __all__ = [
     "SLAM",
@@ -28,6 +29,7 @@ __all__ = [
     "SLAMConfig",
     "SLAMResult",
     "find_candidates",
+    "frame_reader",
     "optimize_keyframes",
     "run_sequence",
     "verify_loop",

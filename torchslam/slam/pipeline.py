@@ -33,7 +33,7 @@ from torchslam.slam.config import SLAMConfig
 from torchslam.slam.loops import LoopClosure, find_candidates, verify_loop
 from torchslam.slam.odometry import FrameInfo, Keyframe, Odometry
 
-__all__ = ["SLAM", "SLAMResult", "run_sequence"]
+__all__ = ["SLAM", "SLAMResult", "frame_reader", "run_sequence"]
 
 
 @dataclass
@@ -304,6 +304,21 @@ def run_sequence(
     result = slam.finish()
     result.seconds = {"read": read_seconds, **result.seconds}
     return result
+
+
+def frame_reader(
+    frames: str | os.PathLike | Sequence,
+    config: SLAMConfig | None = None,
+    *,
+    sensor: str | None = None,
+    intrinsics: object = None,
+    depth_scale: float = 1000.0,
+) -> tuple[Callable[[int], Tensor], int, np.ndarray | None, str | None]:
+    """How :func:`run_sequence` reads a sequence: ``(read(i) → cloud (N, 3) in the sensor
+    frame, number of frames, timestamps (before any ``every``) or None, sensor)``; arguments as
+    :func:`run_sequence`. Depth frames are back-projected with the config's range and
+    ``pixel_stride``."""
+    return _frames("frame_reader", frames, sensor, intrinsics, depth_scale, config)
 
 
 def _frames(fn, frames, sensor, intrinsics, depth_scale, config):
