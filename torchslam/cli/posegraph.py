@@ -23,7 +23,7 @@ import torch
 
 from torchslam.cli import DEFAULT_THREADS, add_threads_argument, int_range, plots, using_threads
 from torchslam.io import g2o
-from torchslam.posegraph import certification, initialization, objectives
+from torchslam.posegraph import certification, objectives
 from torchslam.posegraph.graph import PoseGraph
 from torchslam.posegraph.solve import (
     IterationInfo,
@@ -31,6 +31,7 @@ from torchslam.posegraph.solve import (
     PoseGraphSolveResult,
     solve_pose_graph,
 )
+from torchslam.posegraph.solve import initial_poses as solve_initial_poses
 
 __all__ = [
     "INITIALIZATIONS",
@@ -154,14 +155,11 @@ def options_from_args(args: argparse.Namespace) -> PoseGraphOptions:
 
 
 def initial_poses(graph: PoseGraph, init: str) -> torch.Tensor:
-    """Initial poses (N, 4, 4) by name: "file", "odometry" or "chordal" (INITIALIZATIONS)."""
-    if init == "file":
-        return graph.poses
-    if init == "odometry":
-        return initialization.odometry_initialization(graph)
-    if init == "chordal":
-        return initialization.chordal_initialization(graph)
-    raise ValueError(f"--init must be one of {INITIALIZATIONS}, got {init!r}")
+    """Initial poses (N, 4, 4) by name: "file", "odometry" or "chordal" (INITIALIZATIONS), as
+    :func:`torchslam.posegraph.solve.initial_poses` gives them to the API's solve."""
+    if init not in INITIALIZATIONS:
+        raise ValueError(f"--init must be one of {INITIALIZATIONS}, got {init!r}")
+    return solve_initial_poses(graph, init)
 
 
 def run_posegraph(

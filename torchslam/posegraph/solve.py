@@ -57,6 +57,7 @@ __all__ = [
     "PoseGraphSolveResult",
     "PoseGraphSolverConfig",
     "PosePriors",
+    "initial_poses",
     "solve_pose_graph",
 ]
 
@@ -406,10 +407,19 @@ def graph_data(
     )
 
 
-def _initial_poses(graph: PoseGraph, init: str, fixed: Tensor) -> Tensor:
-    """The poses ``init`` names, moved rigidly so that the first fixed vertex is where the
-    graph puts it (fixed vertices are held at their vertices: all are set there)."""
+def initial_poses(graph: PoseGraph, init: str = "chordal", fixed: Tensor | None = None) -> Tensor:
+    """The initial poses (N, 4, 4) that ``init`` names ("chordal", "odometry", "file"), moved
+    rigidly so that the first fixed vertex (``fixed``, default as :func:`solve_pose_graph`'s)
+    is where the graph puts it; every fixed vertex is set at its vertex (they are held there)."""
     from torchslam.posegraph import initialization as _init
+
+    if init not in ("chordal", "odometry", "file"):
+        raise ValueError(
+            "initial_poses: argument 'init' must be 'chordal', 'odometry' or 'file', got "
+            f"{_checks.describe(init)}"
+        )
+    if fixed is None:
+        fixed = graph.fixed if graph.fixed.numel() else graph.edges.new_zeros(1)
 
     if init == "file":
         return graph.poses
@@ -484,7 +494,7 @@ def solve_pose_graph(
     with torch.no_grad():
         _check_information(graph, priors, getattr(config, "objective", "chi2"))
     if poses is None:
-        poses = _initial_poses(graph, init, fixed)
+        poses = initial_poses(graph, init, fixed)
     solver_config = _solver_config(config)
     if isinstance(config, PoseGraphSolverConfig) and config.linear_solver == "auto":
         # The pose-graph rule: dense up to dense_max_variables free unknowns, else sparse
