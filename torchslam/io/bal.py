@@ -70,6 +70,24 @@ class BALProblem:
         return 0.5 * float(self.residuals().square().sum())
 
 
+def _problem(
+    values: np.ndarray,
+    C: int,
+    P: int,
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    observations: np.ndarray,
+) -> BALProblem:
+    """The problem of the parsed arrays: ``values`` the 9·C camera then 3·P point values."""
+    return BALProblem(
+        torch.from_numpy(values[: 9 * C].reshape(C, 9).copy()),
+        torch.from_numpy(values[9 * C :].reshape(P, 3).copy()),
+        torch.from_numpy(camera_index),
+        torch.from_numpy(point_index),
+        torch.from_numpy(observations),
+    )
+
+
 def _error(fn: str, path: object, line: int | None, what: str) -> ValueError:
     where = f"{os.fspath(path)}: line {line}: " if line is not None else f"{os.fspath(path)}: "
     return ValueError(f"{fn}: {where}{what}")
@@ -152,13 +170,7 @@ def read_bal(path: str | os.PathLike) -> BALProblem:
         raise _error(
             fn, where, None, f"truncated: {filled} of {values.size} camera and point values"
         )
-    return BALProblem(
-        torch.from_numpy(values[: 9 * C].reshape(C, 9).copy()),
-        torch.from_numpy(values[9 * C :].reshape(P, 3).copy()),
-        torch.from_numpy(camera_index),
-        torch.from_numpy(point_index),
-        torch.from_numpy(observations),
-    )
+    return _problem(values, C, P, camera_index, point_index, observations)
 
 
 _NUMBERS = re.compile(r"(?:\s*" + _text._FLOAT.pattern + r")*\s*")
@@ -201,13 +213,7 @@ def _fast_body(lines: list[str], header_line: int, C: int, P: int, n_obs: int) -
     else:
         ci = pi = np.zeros(0, dtype=np.int64)
         observations = np.zeros((0, 2))
-    return BALProblem(
-        torch.from_numpy(values[: 9 * C].reshape(C, 9).copy()),
-        torch.from_numpy(values[9 * C :].reshape(P, 3).copy()),
-        torch.from_numpy(ci),
-        torch.from_numpy(pi),
-        torch.from_numpy(observations),
-    )
+    return _problem(values, C, P, ci, pi, observations)
 
 
 def write_bal(path: str | os.PathLike, problem: BALProblem) -> None:

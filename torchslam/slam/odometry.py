@@ -380,11 +380,12 @@ class Odometry:
         wide = 3.0 * gate
         for start in (prediction, self._last):
             coarse = self._icp(source, start, wide)
-            fine = self._icp(source, coarse.transform, gate)
-            q = self._judge(source, fine.transform)
-            attempts.append((fine.transform, q, int(coarse.iterations) + int(fine.iterations)))
+            refined = self._icp(source, coarse.transform, gate)
+            q = self._judge(source, refined.transform)
+            steps = int(coarse.iterations) + int(refined.iterations)
+            attempts.append((refined.transform, q, steps))
             if q.trusted:
-                return fine.transform, q, attempts[-1][2], FrameStatus.RETRIED
+                return refined.transform, q, steps, FrameStatus.RETRIED
         best = max(attempts, key=lambda a: (a[1].fitness, -a[1].rms))
         return best[0], best[1], best[2], FrameStatus.UNRELIABLE
 
