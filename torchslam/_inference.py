@@ -56,6 +56,8 @@ def plain(value):
         if all(a is b for a, b in zip(items, value, strict=True)):
             return value
         return type(value)(items)
+    if type(value) is dict:
+        return {k: plain(v) for k, v in value.items()}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         changes = {}
         for field in dataclasses.fields(value):

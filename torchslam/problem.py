@@ -36,7 +36,7 @@ this module holds the ``nn.Module`` only.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -46,6 +46,7 @@ from torchslam._threads import threads_for_entries
 from torchslam.lie import se3
 from torchslam.objective import data as _data
 from torchslam.objective import gauge as _gauge
+from torchslam.objective import parameters as _parameters
 from torchslam.objective import terms as _terms
 
 __all__ = ["PointMapProblem"]
@@ -70,6 +71,11 @@ class PointMapProblem(nn.Module):
             per observation to s = rᵀΩr; default none (least squares).
         terms: extra terms of the objective on the poses (:mod:`torchslam.terms`: relative-pose
             constraints, pose priors, user terms), each shared by the batch or batched (B, …).
+        parameters: parameter blocks, variables beyond poses and points (camera intrinsics,
+            calibrations): a mapping group name → initial values (q, d) (shared by the batch)
+            or (B, q, d); terms touch them with ``parameters={name: index}``
+            (:mod:`torchslam.objective.parameters`). Held as ``parameter_blocks``.
+        fixed_parameters: blocks held fixed, group name → bool (q,) or (B, q); default none.
 
     The objective is ½ Σ_e ρ(r_eᵀ Ω_e r_e) + Σ_terms ½ Σ_k ρ_t(s_k).
 
@@ -90,6 +96,8 @@ class PointMapProblem(nn.Module):
         fixed_points: Tensor | None = None,
         loss: object | None = None,
         terms: Sequence[_terms.Term] = (),
+        parameters: Mapping[str, Tensor] | None = None,
+        fixed_parameters: Mapping[str, Tensor] | None = None,
     ) -> None:
         super().__init__()
         fn = "PointMapProblem"
@@ -134,7 +142,11 @@ class PointMapProblem(nn.Module):
         )
         losses.check_loss(fn, loss)
         scalar_weights, information = _data.split_weights(fn, weights, B, E, observations)
-        terms = _terms.bind_terms(fn, terms, B, m, observations, n)
+        values, fixed_blocks = _parameters.check_parameters(
+            fn, parameters, B, observations, fixed_parameters
+        )
+        layout = _parameters.parameter_layout(values, fixed_blocks, m)
+        terms = _terms.bind_terms(fn, terms, B, m, observations, n, layout)
 
         # Small problems' checks on one thread (torchslam._threads).
         with threads_for_entries(max(9 * B * E, 16 * B * m, 3 * B * n)):
@@ -160,6 +172,9 @@ class PointMapProblem(nn.Module):
             # The poses were checked above: the private log (a new tensor) skips checking again.
             self.pose_tangent = nn.Parameter(se3._log(poses.detach()))
             self.points = nn.Parameter(points.detach().clone())
+            self.parameter_blocks = nn.ParameterDict(
+                {k: nn.Parameter(v) for k, v in values.items()}
+            )
             # PointMapData makes the padding inert (index 0, observation 0, weight 1, information
             # I), whatever it holds: NaN, Inf, out-of-range indices.
             self.data = _data.PointMapData(
@@ -173,6 +188,7 @@ class PointMapProblem(nn.Module):
                 fixed_points=fixed_points,
                 loss=loss,
                 terms=terms,
+                parameters=layout,
             )
             # Checked above, or deliberately not (built inside validation(False)): a solve does not
             # check these values again (a non-finite observation then shows in the status).
@@ -345,8 +361,12 @@ class PointMapProblem(nn.Module):
         return self.data.whiten(self.raw_residuals())
 
     def cost(self) -> Tensor:
-        """Per-problem cost ½ Σ_e ρ(r_eᵀ Ω_e r_e) (+ the terms' costs), shape (B,)."""
-        return _data.cost(self.pose_tangent, self.points, self.data)
+        """Per-problem cost ½ Σ_e ρ(r_eᵀ Ω_e r_e) (+ the terms' costs), shape (B,);
+        differentiable w.r.t. the poses, points and parameter blocks."""
+        slots = None
+        if self.data.parameters is not None:
+            slots = self.data.parameters.pack(dict(self.parameter_blocks.items()))
+        return _data.cost(self.pose_tangent, self.points, self.data, slots)
 
     def forward(self) -> Tensor:
         """The per-problem cost, shape (B,) (so the module can be called like a loss)."""

@@ -27,6 +27,7 @@ from torch import Tensor
 
 from torchslam import _checks, _inference, jacobians, losses
 from torchslam.lie import se3
+from torchslam.objective.parameters import ParameterLayout
 from torchslam.objective.terms import Term, terms_cost
 from torchslam.objective.whitening import whiten, whitening
 
@@ -72,6 +73,8 @@ class PointMapData:
     loss: object | None
     # Extra pose terms of the objective (:mod:`torchslam.terms`), bound to batch B.
     terms: tuple[Term, ...] = ()
+    # Where the parameter blocks sit in the reduced system (:mod:`.parameters`), or None.
+    parameters: ParameterLayout | None = None
 
     def __post_init__(self) -> None:
         """Check types and shapes (free: no host sync); point padding indices at row 0.
@@ -140,6 +143,21 @@ class PointMapData:
     @property
     def num_poses(self) -> int:
         return self.fixed_poses.shape[-1]
+
+    @property
+    def num_slots(self) -> int:
+        """Slots of the reduced system: the m poses, then the parameter blocks' slots
+        (:mod:`.parameters`); m without parameter blocks."""
+        return self.num_poses + (0 if self.parameters is None else self.parameters.num_slots)
+
+    @functools.cached_property
+    def fixed_slots(self) -> Tensor:
+        """Slots held fixed, bool (B, num_slots): ``fixed_poses``, then the fixed parameter
+        blocks' slots (the same tensor as ``fixed_poses`` without parameter blocks)."""
+        if self.parameters is None:
+            return self.fixed_poses
+        with _inference.outside():
+            return torch.cat((self.fixed_poses, self.parameters.fixed_slots()), dim=-1)
 
     @functools.cached_property
     def flat_pose_index(self) -> Tensor:
@@ -257,6 +275,8 @@ class PointMapData:
         moved = {k: fn(v) for k, v in losses.tensor_attributes(self.loss, False).items()}
         changes["loss"] = losses.with_tensor_attributes(self.loss, moved)
         changes["terms"] = tuple(term.apply(fn) for term in self.terms)
+        if self.parameters is not None:
+            changes["parameters"] = self.parameters.apply(fn)
         return dataclasses.replace(self, **changes)
 
     def squared_norms(self, raw_residuals: Tensor) -> Tensor:
@@ -321,18 +341,23 @@ def raw_residuals(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> T
     return raw_residuals_from_poses(se3.exp(pose_tangent, form="fast"), points, data)
 
 
-def cost_from_poses(T: Tensor, points: Tensor, data: PointMapData) -> Tensor:
+def cost_from_poses(
+    T: Tensor, points: Tensor, data: PointMapData, parameters: Tensor | None = None
+) -> Tensor:
     """½ Σ_e ρ(r_eᵀ Ω_e r_e) + the terms' costs per problem, (B,), from pose matrices
-    T (B, m, 4, 4)."""
+    T (B, m, 4, 4) (and the parameter blocks' slot values (B, S, 6), if any)."""
     s = data.squared_norms(raw_residuals_from_poses(T, points, data))
     if data.loss is not None:
         s = torch.where(data.valid, data.loss(s)[0], torch.zeros_like(s))
-    return 0.5 * s.sum(-1) + terms_cost(data.terms, T, points)
+    return 0.5 * s.sum(-1) + terms_cost(data.terms, T, points, data.parameters, parameters)
 
 
-def cost(pose_tangent: Tensor, points: Tensor, data: PointMapData) -> Tensor:
-    """½ Σ_e ρ(r_eᵀ Ω_e r_e) + the terms' costs per problem, (B,)."""
-    return cost_from_poses(se3.exp(pose_tangent, form="fast"), points, data)
+def cost(
+    pose_tangent: Tensor, points: Tensor, data: PointMapData, parameters: Tensor | None = None
+) -> Tensor:
+    """½ Σ_e ρ(r_eᵀ Ω_e r_e) + the terms' costs per problem, (B,) (``parameters``: the
+    parameter blocks' slot values (B, S, 6), if any)."""
+    return cost_from_poses(se3.exp(pose_tangent, form="fast"), points, data, parameters)
 
 
 def jacobian_blocks(

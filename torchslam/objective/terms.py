@@ -66,6 +66,7 @@ from torchslam import _checks, _inference, losses
 from torchslam._batched import matmul
 from torchslam.lie import se3, so3
 from torchslam.manifold import right_jacobian_jacrev
+from torchslam.objective.parameters import SLOT, ParameterLayout
 from torchslam.objective.whitening import whitening
 
 __all__ = [
@@ -81,6 +82,7 @@ __all__ = [
     "term_blocks",
     "term_cost",
     "term_jacobians",
+    "term_parameters",
     "term_points",
     "term_poses",
     "term_squared_norms",
@@ -125,6 +127,7 @@ class Term:
         information: Tensor | None = None,
         loss: object | None = None,
         valid: Tensor | None = None,
+        parameters: Mapping[str, Tensor] | None = None,
     ) -> None:
         fn = type(self).__name__
         if pose_index is None and isinstance(point_index, Tensor):
@@ -180,8 +183,10 @@ class Term:
                 f"{_checks.describe(constants)}"
             )
         self.constants = dict(constants or {})
+        self.parameter_index = _parameter_indices(fn, parameters, lead, pose_index.device)
         check_values = _checks.value_checks_active()
         reserved = ("poses", "points") if self.point_index is not None else ("poses",)
+        reserved = reserved + tuple(self.parameter_index)
         for name, value in self.constants.items():
             if not isinstance(name, str) or not name.isidentifier():
                 raise TypeError(
@@ -191,7 +196,8 @@ class Term:
             if name in reserved:
                 raise ValueError(
                     f"{fn}: constant name {name!r} is taken by the argument of residual() "
-                    f"of that name; rename the constant"
+                    f"of that name (a variable: poses, points or a parameter group); rename "
+                    f"the constant"
                 )
             _checks.check_tensor(fn, name, value, floating=False)
             if tuple(value.shape[: len(lead)]) != lead:
@@ -267,8 +273,10 @@ class Term:
 
         ``poses[..., a, :, :]`` is the a-th pose the instance touches (T_i0, world → frame i).
         A term with ``point_index`` is called as ``residual(poses, points, **constants)`` with
-        its world points X_j (..., 3) as the second argument. Must be written batched over the
-        leading dims (it is also called under ``vmap``).
+        its world points X_j (..., 3) as the second argument. A term with ``parameters`` also
+        gets each group's blocks by the group's name: (..., d) for an index (K,), (..., c, d)
+        for an index (K, c). Must be written batched over the leading dims (it is also called
+        under ``vmap``).
         """
         raise NotImplementedError(f"{type(self).__name__} must implement residual()")
 
@@ -278,7 +286,8 @@ class Term:
         A pose term returns (r (..., d), J (..., d, a, 6)), J[..., :, a, :] = ∂r/∂δ_a for
         T_a ← T_a·Exp(δ_a), columns (ω, v); a term with ``point_index`` returns
         (r, J_poses (..., d, a, 6), J_point (..., d, 3)), J_point = ∂r/∂X for X ← X + δX.
-        The default (None) means ``jacrev``."""
+        A term with ``parameters`` appends a dict {group: ∂r/∂x (..., d, d_g) or
+        (..., d, c, d_g)} for x ← x + δx. The default (None) means ``jacrev``."""
         return None
 
     # ----------------------------------------------------------------------------------------
@@ -288,6 +297,24 @@ class Term:
     def arity(self) -> int:
         """Poses per instance a."""
         return self.pose_index.shape[-1]
+
+    @property
+    def slot_index(self) -> Tensor:
+        """The reduced-system slots each instance touches, long (…, K, a'): its poses, then
+        the slots of its parameter blocks group by group (:mod:`.parameters`); the same tensor
+        as ``pose_index`` for a term without parameter blocks, or before :meth:`bind`."""
+        slots = getattr(self, "_slot_index", None)
+        return self.pose_index if slots is None else slots
+
+    @property
+    def slot_arity(self) -> int:
+        """Slots per instance a' (the arity without parameter blocks)."""
+        return self.slot_index.shape[-1]
+
+    @property
+    def has_parameters(self) -> bool:
+        """Each instance also touches parameter blocks (``parameters`` was given)."""
+        return bool(self.parameter_index)
 
     @property
     def has_point(self) -> bool:
@@ -335,6 +362,9 @@ class Term:
         new = copy.copy(self)
         new.pose_index = fn(self.pose_index)
         new.point_index = None if self.point_index is None else fn(self.point_index)
+        new.parameter_index = {k: fn(v) for k, v in self.parameter_index.items()}
+        if getattr(self, "_slot_index", None) is not None:
+            new._slot_index = fn(self._slot_index)
         new.valid = fn(self.valid)
         new.constants = {k: fn(v) for k, v in self.constants.items()}
         new.weight = None if self.weight is None else fn(self.weight)
@@ -344,11 +374,17 @@ class Term:
         return new
 
     def bind(
-        self, batch_size: int, num_poses: int, like: Tensor, num_points: int | None = None
+        self,
+        batch_size: int,
+        num_poses: int,
+        like: Tensor,
+        num_points: int | None = None,
+        parameters: ParameterLayout | None = None,
     ) -> Term:
         """A copy with every tensor expanded to batch ``batch_size``, checked against a problem
         of ``num_poses`` poses (and ``num_points`` points, needed by a term with
-        ``point_index``) whose floating tensors are like ``like`` (dtype, device)."""
+        ``point_index``; and the parameter groups of ``parameters``, needed by a term with
+        ``parameters``) whose floating tensors are like ``like`` (dtype, device)."""
         fn = type(self).__name__
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 0:
             raise ValueError(f"{fn}.bind: 'batch_size' must be an int ≥ 0, got {batch_size!r}")
@@ -408,17 +444,49 @@ class Term:
                     f"instance {k} has {int(new.point_index[b, k])}"
                 )
             new.point_index = torch.where(new.valid, new.point_index, 0)
+        new.parameter_index = {}
+        slots = [new.pose_index]
+        for name, index in self.parameter_index.items():
+            if parameters is None or name not in parameters.names:
+                known = [] if parameters is None else list(parameters.names)
+                raise ValueError(
+                    f"{fn}: the term touches parameter group {name!r}, which the problem does not "
+                    f"have (its groups: {known}); give it as parameters={{{name!r}: …}}"
+                )
+            index = expand(index.to(like.device))
+            q = parameters.counts[parameters.group(name)]
+            outside = (index < 0) | (index >= q)
+            bad = new.valid & (outside.any(-1) if outside.dim() == 3 else outside)
+            if bool(bad.any()):
+                b, k = (int(i) for i in bad.nonzero()[0])
+                raise ValueError(
+                    f"{fn}: 'parameters[{name!r}]' index out of range [0, {q}): problem {b}, "
+                    f"instance {k} has {index[b, k].tolist()}"
+                )
+            keep = new.valid if index.dim() == 2 else new.valid[..., None]
+            index = torch.where(keep, index, 0)
+            new.parameter_index[name] = index
+            block = index if index.dim() == 3 else index[..., None]
+            slots.append(parameters.slot_index(name, block).flatten(2))
+        new._slot_index = torch.cat(slots, dim=-1) if len(slots) > 1 else None
         new.constants = {k: expand(v) for k, v in self.constants.items()}
         new.weight = None if self.weight is None else expand(self.weight)
         new.information = None if self.information is None else expand(self.information)
         if new.num_instances > 0 and B > 0:
             # One instance, batch dims (1, 1): poses (1, 1, a, 4, 4), points (1, 1, 3),
             # constants (1, 1, …); only the shape and dtype of the value are used.
+            one = {
+                name: like.new_zeros(
+                    1, 1, *index.shape[2:], parameters.dims[parameters.group(name)]
+                )
+                for name, index in new.parameter_index.items()
+            }
             r = _call_residual(
                 new,
                 se3.identity(1, 1, new.arity, dtype=like.dtype, device=like.device),
                 like.new_zeros(1, 1, 3),
                 {k: v[:1, :1] for k, v in masked_constants(new).items()},
+                one,
             )
             if not isinstance(r, Tensor) or r.dim() != 3 or tuple(r.shape[:2]) != (1, 1):
                 got = tuple(r.shape) if isinstance(r, Tensor) else _checks.describe(r)
@@ -452,7 +520,13 @@ class Term:
 
 
 def bind_terms(
-    fn: str, terms: object, B: int, m: int, like: Tensor, n: int = 0
+    fn: str,
+    terms: object,
+    B: int,
+    m: int,
+    like: Tensor,
+    n: int = 0,
+    parameters: ParameterLayout | None = None,
 ) -> tuple[Term, ...]:
     """The terms of a problem bound to its batch B, m poses and n points (:meth:`Term.bind`),
     after checking that ``terms`` is a list or tuple of :class:`Term` (errors name ``fn``)."""
@@ -466,7 +540,7 @@ def bind_terms(
         "torchslam.Term objects",
         "a torchslam.Term (e.g. RelativePoseTerm)",
     )
-    return tuple(term.bind(B, m, like, n) for term in terms)
+    return tuple(term.bind(B, m, like, n, parameters) for term in terms)
 
 
 def _check_finite_where_valid(fn: str, what: str, value: Tensor, valid: Tensor) -> None:
@@ -530,16 +604,76 @@ def term_points(term: Term, points: Tensor) -> Tensor:
 
 
 def _call_residual(
-    term: Term, poses: Tensor, points: Tensor | None, constants: Mapping[str, Tensor]
+    term: Term,
+    poses: Tensor,
+    points: Tensor | None,
+    constants: Mapping[str, Tensor],
+    parameters: Mapping[str, Tensor] | None = None,
 ) -> Tensor:
-    """``term.residual`` with the points as second argument for a point term."""
+    """``term.residual`` with the points as second argument for a point term and the
+    parameter blocks by name."""
+    extra = dict(parameters or {})
     if term.has_point:
-        return term.residual(poses, points, **constants)
-    return term.residual(poses, **constants)
+        return term.residual(poses, points, **extra, **constants)
+    return term.residual(poses, **extra, **constants)
+
+
+def _parameter_indices(
+    fn: str, parameters: object, lead: tuple[int, ...], device: torch.device
+) -> dict[str, Tensor]:
+    """The checked ``parameters`` argument of a term: {group: long index lead or lead + (c,)}."""
+    if parameters is None:
+        return {}
+    if not isinstance(parameters, Mapping):
+        raise TypeError(
+            f"{fn}: argument 'parameters' must be a mapping group name → block index of shape "
+            f"{lead} (or {lead} + (c,)), got {_checks.describe(parameters)}"
+        )
+    out = {}
+    for name, index in parameters.items():
+        if not isinstance(name, str) or not name.isidentifier():
+            raise TypeError(f"{fn}: parameter group names must be identifiers, got {name!r}")
+        if not isinstance(index, Tensor):
+            raise TypeError(
+                f"{fn}: 'parameters[{name!r}]' must be an integer torch.Tensor of shape {lead}, "
+                f"got {_checks.describe(index)}"
+            )
+        _checks.check_integer_tensor(fn, f"parameters[{name!r}]", index)
+        if tuple(index.shape[: len(lead)]) != lead or index.dim() not in (len(lead), len(lead) + 1):
+            raise ValueError(
+                f"{fn}: 'parameters[{name!r}]' must have shape {lead} (one block per instance) "
+                f"or {lead} + (c,), got {tuple(index.shape)}"
+            )
+        out[name] = index.to(device, torch.long)
+    return out
+
+
+def term_parameters(term: Term, layout: ParameterLayout, slots: Tensor) -> dict[str, Tensor]:
+    """The parameter blocks each instance touches, {group: (B, K, d) or (B, K, c, d)}, from
+    the slot values (B, S, 6) of the problem's blocks (bound term)."""
+    if not term.parameter_index:
+        return {}
+    if layout is None or slots is None:
+        raise ValueError(
+            f"{type(term).__name__} touches parameter blocks {sorted(term.parameter_index)}; "
+            "give their values (the problem's parameter_blocks)"
+        )
+    values = layout.unpack(slots)
+    out = {}
+    for name, index in term.parameter_index.items():
+        v = values[name]
+        B, q, d = v.shape
+        batch = torch.arange(B, device=index.device).reshape(B, *[1] * (index.dim() - 1))
+        out[name] = v.reshape(B * q, d)[(batch * q + index).reshape(-1)].reshape(*index.shape, d)
+    return out
 
 
 def term_blocks(
-    term: Term, poses: Tensor, points: Tensor | None = None, mode: str = "analytic"
+    term: Term,
+    poses: Tensor,
+    points: Tensor | None = None,
+    mode: str = "analytic",
+    parameters: Mapping[str, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """Residuals and Jacobian blocks of a bound term at its poses and points.
 
@@ -551,11 +685,44 @@ def term_blocks(
         mode: ``"analytic"`` uses :meth:`Term.jacobians` when the term has them, else
             ``jacrev``; ``"jacrev"`` always differentiates :meth:`Term.residual` with
             ``torch.func.jacrev`` w.r.t. the right perturbations δ_a of the poses
-            (T_a ← T_a·Exp(δ_a)) and the Euclidean increment of the point, at zero.
+            (T_a ← T_a·Exp(δ_a)) and the Euclidean increments of the point and of the
+            parameter blocks, at zero.
+        parameters: the parameter blocks each instance touches (:func:`term_parameters`),
+            for a term with ``parameters``.
 
     Returns:
-        (r (B, K, d), J_poses (B, K, d, a, 6), J_point (B, K, d, 3) or None for a pose term).
+        (r (B, K, d), J (B, K, d, a', 6), J_point (B, K, d, 3) or None for a pose term): J
+        over the instance's slots (:attr:`Term.slot_index`): the a pose blocks, then each
+        parameter block's ∂r/∂x in its ⌈d_g/6⌉ slots (zero columns past d_g).
     """
+    if not term.has_parameters:
+        return _pose_point_blocks(term, poses, points, mode, {})
+    parameters = dict(parameters or {})
+    missing = [k for k in term.parameter_index if k not in parameters]
+    if missing:
+        raise TypeError(
+            f"term_blocks: {type(term).__name__} touches parameter group {missing[0]!r}; give "
+            "its blocks (term_parameters)"
+        )
+    r, J, J_point, J_params = _pose_point_blocks(term, poses, points, mode, parameters)
+    B, K, d = r.shape
+    parts = [J]
+    for name in term.parameter_index:
+        Jg = J_params[name]
+        single = Jg.dim() == 4
+        if single:
+            Jg = Jg[..., None, :]
+        width = -(-Jg.shape[-1] // SLOT) * SLOT
+        if width != Jg.shape[-1]:
+            Jg = torch.nn.functional.pad(Jg, (0, width - Jg.shape[-1]))
+        parts.append(Jg.reshape(B, K, d, -1, SLOT))
+    return r, torch.cat(parts, dim=3), J_point
+
+
+def _pose_point_blocks(term, poses, points, mode, parameters):
+    """:func:`term_blocks` before the parameter blocks' slots: (r, J_poses, J_point) without
+    parameters, (r, J_poses, J_point, {group: ∂r/∂x}) with."""
+    with_parameters = term.has_parameters
     name = type(term).__name__
     if term.has_point and not isinstance(points, Tensor):
         raise TypeError(f"term_blocks: {name} touches points; give its points (B, K, 3)")
@@ -566,26 +733,43 @@ def term_blocks(
     d = getattr(term, "residual_dim", None)
     if mode == "analytic":
         if term.has_point:
-            out = term.jacobians(poses, points, **constants)
+            out = term.jacobians(poses, points, **parameters, **constants)
         else:
-            out = term.jacobians(poses, **constants)
+            out = term.jacobians(poses, **parameters, **constants)
         if out is not None:
             fn = f"{name}.jacobians"
-            size = 3 if term.has_point else 2
+            size = (3 if term.has_point else 2) + with_parameters
             if not (isinstance(out, tuple) and len(out) == size):
                 what = (
-                    "(residuals, pose blocks, point blocks)" if size == 3 else "(residuals, blocks)"
+                    "(residuals, pose blocks, point blocks"
+                    if term.has_point
+                    else ("(residuals, blocks")
                 )
+                what += ", {group: parameter blocks})" if with_parameters else ")"
                 raise TypeError(
                     f"{fn} must return None or a tuple {what}, got {_checks.describe(out)}"
                 )
             r = out[0]
             _check_term_output(fn, "residuals", r, (B, K, d), poses)
             _check_term_output(fn, "blocks", out[1], (B, K, r.shape[-1], a, 6), poses)
-            if size == 2:
-                return r, out[1], None
-            _check_term_output(fn, "point blocks", out[2], (B, K, r.shape[-1], 3), poses)
-            return out
+            J_point = None
+            if term.has_point:
+                J_point = out[2]
+                _check_term_output(fn, "point blocks", J_point, (B, K, r.shape[-1], 3), poses)
+            if not with_parameters:
+                return r, out[1], J_point
+            J_params = out[-1]
+            if not isinstance(J_params, Mapping) or set(J_params) != set(parameters):
+                raise TypeError(
+                    f"{fn}: its last value must be a dict with the blocks of the parameter "
+                    f"groups {sorted(parameters)}, got {_checks.describe(J_params)}"
+                )
+            for group, value in parameters.items():
+                shape = (B, K, r.shape[-1], *value.shape[2:])
+                _check_term_output(fn, f"parameter blocks {group!r}", J_params[group], shape, poses)
+            return r, out[1], J_point, dict(J_params)
+    if with_parameters:
+        return _jacrev_with_parameters(term, poses, points, constants, parameters)
     r = _call_residual(term, poses, points, constants)
     _check_term_output(f"{name}.residual", "its return value", r, (B, K, d), poses)
     d = r.shape[-1]
@@ -622,6 +806,37 @@ def term_blocks(
             "batched over all leading dims (use '...')"
         )
     return r, J, (J_point if term.has_point else None)
+
+
+def _jacrev_with_parameters(term, poses, points, constants, parameters):
+    """(r, J_poses, J_point, {group: ∂r/∂x}) of a term with parameter blocks by ``jacrev``
+    (the parameter blocks are Euclidean arguments of :func:`right_jacobian_jacrev`)."""
+    names = tuple(parameters)
+    r = _call_residual(term, poses, points, constants, parameters)
+    B, K, a = poses.shape[:3]
+    d = r.shape[-1]
+    _check_term_output(f"{type(term).__name__}.residual", "its return value", r, (B, K, d), poses)
+    if B * K == 0:
+        J_point = r.new_zeros(B, K, d, 3) if term.has_point else None
+        zeros = {k: r.new_zeros(B, K, d, *v.shape[2:]) for k, v in parameters.items()}
+        return r, r.new_zeros(B, K, d, a, 6), J_point, zeros
+    euclidean = ((points,) if term.has_point else ()) + tuple(parameters[k] for k in names)
+    skip = 1 if term.has_point else 0
+
+    def fn(*args, **c):
+        T = args[0] if a > 0 else poses.new_zeros(0, 4, 4)
+        rest = args[1:] if a > 0 else args
+        X = rest[0] if term.has_point else None
+        values = dict(zip(names, rest[skip:], strict=True))
+        return _call_residual(term, T, X, c, values)
+
+    out = right_jacobian_jacrev(
+        fn, (poses,) if a > 0 else (), euclidean, constants=constants, batch_dims=2
+    )
+    J = out[0] if a > 0 else r.new_zeros(B, K, d, 0, 6)
+    rest = out[1:] if a > 0 else out
+    J_point = rest[0] if term.has_point else None
+    return r, J, J_point, dict(zip(names, rest[skip:], strict=True))
 
 
 def term_jacobians(term: Term, poses: Tensor, mode: str = "analytic") -> tuple[Tensor, Tensor]:
@@ -955,16 +1170,17 @@ def term_all_valid(term: Term) -> bool:
 
 
 def term_free_poses(term: Term, fixed_poses: Tensor) -> Tensor | None:
-    """Which poses of each instance are free, bool (B, K, a), for a problem's ``fixed_poses``
-    (B, m); None when all are (the common case: no masking needed). Cached per term."""
+    """Which slots of each instance are free, bool (B, K, a'), for a problem's
+    ``fixed_slots`` (B, m + S) (its ``fixed_poses`` (B, m) without parameter blocks); None
+    when all are (the common case: no masking needed). Cached per term."""
 
     def compute() -> Tensor | None:
         B, m = fixed_poses.shape
         batch = torch.arange(B, device=fixed_poses.device)[:, None, None]
-        free = ~fixed_poses.reshape(-1)[batch * m + term.pose_index]
+        free = ~fixed_poses.reshape(-1)[batch * m + term.slot_index]
         return None if bool(free.all()) else free
 
-    return _cached(term, "_free_poses_cache", (term.pose_index, fixed_poses), compute)
+    return _cached(term, "_free_poses_cache", (term.slot_index, fixed_poses), compute)
 
 
 def term_fixed_rows(term: Term, fixed_poses: Tensor) -> tuple[Tensor, Tensor] | None:
@@ -981,7 +1197,7 @@ def term_fixed_rows(term: Term, fixed_poses: Tensor) -> tuple[Tensor, Tensor] | 
         rows = torch.nonzero(~free.all(-1))[:, 0]
         return rows, free[rows]
 
-    return _cached(term, "_fixed_rows_cache", (term.pose_index, fixed_poses), compute)
+    return _cached(term, "_fixed_rows_cache", (term.slot_index, fixed_poses), compute)
 
 
 def term_whitening(term: Term) -> Tensor | None:
@@ -1026,24 +1242,38 @@ def term_squared_norms(term: Term, r: Tensor) -> Tensor:
     return torch.where(term.valid, s, torch.zeros_like(s))
 
 
-def term_cost(term: Term, poses: Tensor, points: Tensor | None = None) -> Tensor:
+def term_cost(
+    term: Term,
+    poses: Tensor,
+    points: Tensor | None = None,
+    parameters: Mapping[str, Tensor] | None = None,
+) -> Tensor:
     """½ Σ_k ρ(s_k) of a bound term at all poses (B, m, 4, 4) and points (B, n, 3, needed by
-    a term with ``point_index``) → (B,). Differentiable."""
+    a term with ``point_index``), with ``parameters`` its instances' parameter blocks
+    (:func:`term_parameters`, for a term with ``parameters``) → (B,). Differentiable."""
     if term.has_point and not isinstance(points, Tensor):
         raise TypeError(
             f"term_cost: {type(term).__name__} touches points; give the points (B, n, 3)"
         )
     X = term_points(term, points) if term.has_point else None
-    r = _call_residual(term, term_poses(term, poses), X, masked_constants(term))
+    r = _call_residual(term, term_poses(term, poses), X, masked_constants(term), parameters)
     s = term_squared_norms(term, r)
     if term.loss is not None:
         s = torch.where(term.valid, term.loss(s)[0], torch.zeros_like(s))
     return 0.5 * s.sum(-1)
 
 
-def terms_cost(terms: tuple[Term, ...], poses: Tensor, points: Tensor | None = None) -> Tensor:
-    """Σ over bound terms of :func:`term_cost`, (B,) (zeros without terms)."""
+def terms_cost(
+    terms: tuple[Term, ...],
+    poses: Tensor,
+    points: Tensor | None = None,
+    layout: ParameterLayout | None = None,
+    slots: Tensor | None = None,
+) -> Tensor:
+    """Σ over bound terms of :func:`term_cost`, (B,) (zeros without terms); ``layout`` and
+    the slot values ``slots`` (B, S, 6) give the parameter blocks of terms that touch them."""
     total = poses.new_zeros(poses.shape[0])
     for term in terms:
-        total = total + term_cost(term, poses, points)
+        params = term_parameters(term, layout, slots) if term.has_parameters else None
+        total = total + term_cost(term, poses, points, params)
     return total

@@ -63,6 +63,7 @@ from torchslam.objective.terms import (
     term_all_valid,
     term_blocks,
     term_fixed_rows,
+    term_parameters,
     term_points,
     term_poses,
     term_whitening,
@@ -119,8 +120,8 @@ def coupling_edges(data: PointMapData) -> CouplingEdges:
     pose, point, valid = [data.pose_index], [data.point_index], [data.valid]
     B = data.pose_index.shape[0]
     for term in point_terms(data):
-        K, a = term.pose_index.shape[1:]
-        pose.append(term.pose_index.reshape(B, K * a))
+        K, a = term.slot_index.shape[1:]
+        pose.append(term.slot_index.reshape(B, K * a))
         point.append(term.point_index[..., None].expand(B, K, a).reshape(B, K * a))
         valid.append(term.valid[..., None].expand(B, K, a).reshape(B, K * a))
     if len(pose) > 1:
@@ -129,7 +130,7 @@ def coupling_edges(data: PointMapData) -> CouplingEdges:
         pose, point, valid = pose[0], point[0], valid[0]
     active = (
         valid
-        & ~torch.gather(data.fixed_poses, 1, pose)
+        & ~torch.gather(data.fixed_slots, 1, pose)
         & ~torch.gather(data.fixed_points, 1, point)
     )
     return CouplingEdges(pose, point, active)
@@ -284,10 +285,13 @@ def linearize(
     jacobian_mode: str = "analytic",
     structured: bool = True,
     poses: Tensor | None = None,
+    parameters: Tensor | None = None,
 ) -> BlockLinearization | StructuredLinearization:
     """Normal-equation blocks at (pose_tangent (B, m, 6), points (B, n, 3)); ``poses`` are the
     matrices Exp(ξ) (B, m, 4, 4) when the caller has them (the loop's iterate; then
-    ``pose_tangent`` is not read and may be None), else computed.
+    ``pose_tangent`` is not read and may be None), else computed. ``parameters``: the slot
+    values (B, S, 6) of the parameter blocks (:mod:`torchslam.objective.parameters`), for a
+    problem that has them; the pose blocks and gradient then cover every slot (B, m + S, …).
 
     The structured form is used when ``structured`` and the problem allows it (scalar weights,
     analytic Jacobians, no curvature-corrected robust observation, no term that touches a
@@ -301,7 +305,9 @@ def linearize(
     lin.poses = poses
     if not data.terms:
         return lin
-    terms = linearize_terms(poses, points, data, jacobian_mode)
+    terms = linearize_terms(poses, points, data, jacobian_mode, parameters)
+    if data.parameters is not None:
+        lin = _with_parameter_slots(lin, data)
     changes = {}
     if isinstance(lin, BlockLinearization) and terms.coupling.shape[1] > 0:
         changes = dict(
@@ -316,6 +322,25 @@ def linearize(
         pose_blocks=lin.pose_blocks + terms.diagonal,
         terms=terms,
         **changes,
+    )
+
+
+def _with_parameter_slots(lin, data: PointMapData):
+    """``lin`` of the point observations (pose blocks and gradient (B, m, …)) extended to the
+    parameter blocks' slots (B, m + S, …): zero gradient; identity blocks on the fixed slots
+    and on the inert entries past a block's size, zero elsewhere (the terms add theirs)."""
+    layout = data.parameters
+    B = lin.pose_gradient.shape[0]
+    S = layout.num_slots
+    like = lin.pose_gradient
+    inert = (~layout.active).to(like.device, like.dtype)  # (S, 6)
+    fixed = data.fixed_slots[:, data.num_poses :]  # (B, S)
+    diagonal = torch.where(fixed[..., None], 1.0, inert)
+    blocks = torch.diag_embed(diagonal)
+    return dataclasses.replace(
+        lin,
+        pose_gradient=torch.cat((lin.pose_gradient, like.new_zeros(B, S, 6)), dim=1),
+        pose_blocks=torch.cat((lin.pose_blocks, blocks), dim=1),
     )
 
 
@@ -527,16 +552,18 @@ def instance_blocks(
 
 
 def term_pair_keys(data: PointMapData) -> Tensor:
-    """Block (b, i_a, i_b) of each of the ``pair_blocks`` as (b·m + i_a)·m + i_b, long (B, P)."""
-    m = data.num_poses
+    """Block (b, i_a, i_b) of each of the ``pair_blocks`` as (b·m + i_a)·m + i_b, long (B, P),
+    m the slots of the reduced system (poses, then parameter blocks)."""
+    m = data.num_slots
     B = data.pose_index.shape[0]
     batch = torch.arange(B, device=data.pose_index.device)[:, None]
     keys = []
     for term in data.terms:
-        for a in range(term.arity):
-            for b in range(term.arity):
+        slots = term.slot_index
+        for a in range(term.slot_arity):
+            for b in range(term.slot_arity):
                 if a != b:
-                    keys.append((batch * m + term.pose_index[..., a]) * m + term.pose_index[..., b])
+                    keys.append((batch * m + slots[..., a]) * m + slots[..., b])
     if not keys:
         return data.pose_index.new_zeros(B, 0)
     return torch.cat(keys, dim=1)
@@ -546,8 +573,10 @@ class TermAccumulator:
     """Sums the terms' per-instance blocks into the layout of :class:`TermLinearization`: the
     one scatter of :func:`linearize_terms` and of the exact Hessian (:mod:`.hessian`)."""
 
-    def __init__(self, poses: Tensor, points: Tensor) -> None:
+    def __init__(self, poses: Tensor, points: Tensor, num_slots: int | None = None) -> None:
         self.B, self.m = poses.shape[:2]
+        if num_slots is not None:  # poses, then the parameter blocks' slots
+            self.m = num_slots
         self.n = points.shape[1]
         B, m, n = self.B, self.m, self.n
         self.cost = poses.new_zeros(B)
@@ -575,9 +604,9 @@ class TermAccumulator:
         (a, a, B, K, 6, 6) tensor), and for a term with a point its block (B, K, 3, 3) and its
         couplings (B, K, 6a, 3)."""
         B, m, n = self.B, self.m, self.n
-        K, a = term.pose_index.shape[1:]
+        K, a = term.slot_index.shape[1:]
         P = 6 * a
-        slots = self.batch[..., None] * m + term.pose_index  # (B, K, a)
+        slots = self.batch[..., None] * m + term.slot_index  # (B, K, a)
         self.cost = self.cost + cost
         for i in range(a):
             self.diagonal.index_add_(
@@ -610,22 +639,30 @@ class TermAccumulator:
 
 
 def linearize_terms(
-    poses: Tensor, points: Tensor, data: PointMapData, jacobian_mode: str
+    poses: Tensor,
+    points: Tensor,
+    data: PointMapData,
+    jacobian_mode: str,
+    parameters: Tensor | None = None,
 ) -> TermLinearization:
-    """The terms' normal-equation blocks at poses T (B, m, 4, 4) and points (B, n, 3)
-    (module doc): :func:`instance_blocks` per term, summed by :class:`TermAccumulator` into
-    the pose and point blocks, the pose pairs and the coupling edges."""
+    """The terms' normal-equation blocks at poses T (B, m, 4, 4), points (B, n, 3) and
+    parameter slots (B, S, 6) (module doc): :func:`instance_blocks` per term, summed by
+    :class:`TermAccumulator` into the slot and point blocks, the slot pairs and the coupling
+    edges."""
     B = poses.shape[0]
     n = points.shape[1]
-    total = TermAccumulator(poses, points)
+    total = TermAccumulator(poses, points, data.num_slots)
     for term in data.terms:
         has_point = term.has_point
         if has_point and n == 0:
             continue  # no points: every instance of the term is padding
         X = term_points(term, points) if has_point else None
-        r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode)
-        K, a = term.pose_index.shape[1:]
-        fixed = term_fixed_rows(term, data.fixed_poses)
+        values = None
+        if term.has_parameters:
+            values = term_parameters(term, data.parameters, parameters)
+        r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode, values)
+        K, a = term.slot_index.shape[1:]
+        fixed = term_fixed_rows(term, data.fixed_slots)
         if fixed is not None:  # the columns of fixed poses are zero (on those rows only)
             rows, free = fixed
             flat = J.reshape(B * K, *J.shape[2:])
@@ -663,9 +700,14 @@ def linearize_terms(
 
 
 def cost_at(
-    pose_tangent: Tensor, points: Tensor, data: PointMapData, factor: Tensor | None
+    pose_tangent: Tensor,
+    points: Tensor,
+    data: PointMapData,
+    factor: Tensor | None,
+    parameters: Tensor | None = None,
 ) -> Tensor:
-    """½ Σ ρ(s) per problem, (B,), with the same whitening as :func:`linearize`."""
+    """½ Σ ρ(s) per problem, (B,), with the same whitening as :func:`linearize`
+    (``parameters``: the parameter blocks' slot values (B, S, 6), if the problem has them)."""
     poses = se3.exp(pose_tangent, form="fast")
     r, _, _ = _residuals(poses, points, data)
     rw = whiten(factor, r[..., None])
@@ -673,7 +715,7 @@ def cost_at(
     if data.loss is not None:
         s = data.loss(s)[0]
     points_cost = 0.5 * torch.where(data.valid, s, torch.zeros_like(s)).sum(-1)
-    return points_cost + terms_cost(data.terms, poses, points)
+    return points_cost + terms_cost(data.terms, poses, points, data.parameters, parameters)
 
 
 def model_decrease(
@@ -712,8 +754,8 @@ def model_decrease(
         batch = torch.arange(B, device=dp.device)[:, None]
         terms = [t for t in data.terms if not (t.has_point and n == 0)]
         for term, J, scale in zip(terms, lin.terms.jacobians, lin.terms.scales, strict=True):
-            K, a = term.pose_index.shape[1:]
-            step = dp.reshape(B * m, 6)[(batch[..., None] * m + term.pose_index).reshape(-1)]
+            K, a = term.slot_index.shape[1:]
+            step = dp.reshape(B * m, 6)[(batch[..., None] * m + term.slot_index).reshape(-1)]
             step = step.reshape(B, K, 6 * a)
             if term.has_point:
                 dl_k = dl.reshape(B * n, 3)[(batch * n + term.point_index).reshape(-1)]

@@ -43,29 +43,43 @@ from torchslam.solver.result import IterationInfo, SolveResult, Status
 __all__ = ["State", "retract", "run", "update_status"]
 
 
-def retract(poses: Tensor, points: Tensor, dp: Tensor, dl: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """x ⊞ δ on the iterate: T ← T·Exp(δp) (seed eq. L1, right perturbation; poses (B, m, 4, 4),
-    dp (B, m, 6)), X ← X + δl (points (B, n, 3)). Returns (T, X, moves), ``moves`` (B, m) the
-    poses whose step is not zero.
+def retract(
+    poses: Tensor, points: Tensor, dp: Tensor, dl: Tensor, parameters: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """x ⊞ δ on the iterate, each variable type by its own retraction
+    (:mod:`torchslam.objective.parameters`): T ← T·Exp(δp) (seed eq. L1, right perturbation;
+    poses (B, m, 4, 4), dp (B, m [+ S], 6)), X ← X + δl (points (B, n, 3)), and for the
+    parameter blocks' slots (B, S, 6) x ← x + δ (the last S rows of dp). Returns
+    (T, X, moves, parameters), ``moves`` (B, m) the poses whose step is not zero.
 
     A pose whose step is exactly zero (a fixed pose) keeps T bit for bit; its twist is then
     the one the solve started from (:attr:`State.xi`). The θ-power form of Exp
     (``se3.exp(..., form="fast")``, the same bits for |δω| ≤ 2²⁰).
     """
+    if parameters is not None:
+        m = poses.shape[1]
+        parameters = parameters + dp[:, m:]
+        dp = dp[:, :m]
     moves = (dp != 0).any(dim=-1)
     moved = torch.where(moves[..., None, None], matmul(poses, se3._exp(dp)), poses)
-    return moved, points + dl, moves
+    return moved, points + dl, moves, parameters
 
 
-def _norm_bound(start_square: Tensor, poses: Tensor, moved: Tensor, X: Tensor) -> Tensor:
+def _norm_bound(
+    start_square: Tensor, poses: Tensor, moved: Tensor, X: Tensor, P: Tensor | None = None
+) -> Tensor:
     """An upper bound of ‖(ξ, X)‖ per problem (B,) without the Log: a pose that moved has
     ‖ξ‖² = θ² + ‖J_l(ω)⁻¹ t‖² ≤ π² + (π/2)²‖t‖² (θ ≤ π, and ‖J_l⁻¹‖ = (θ/2)/sin(θ/2) ≤ π/2),
     bounded here by 10 + 2.5‖t‖² (a margin over round-off); one that did not keeps its ‖ξ₀‖²
     (``start_square`` (B, m)). The total is raised by 10⁻⁵ relative: summed in another order
-    than the exact norm, it could otherwise fall an ulp below it."""
+    than the exact norm, it could otherwise fall an ulp below it. Parameter blocks' slots
+    ``P`` (B, S, 6) add their squares."""
     t_square = poses[..., :3, 3].square().sum(-1)
     per_pose = torch.where(moved, 10.0 + 2.5 * t_square, start_square)
-    return torch.sqrt(per_pose.sum(-1) + X.square().flatten(1).sum(-1)) * (1.0 + 1e-5)
+    total = per_pose.sum(-1) + X.square().flatten(1).sum(-1)
+    if P is not None:
+        total = total + P.detach().square().flatten(1).sum(-1)
+    return torch.sqrt(total) * (1.0 + 1e-5)
 
 
 @dataclass
@@ -94,6 +108,8 @@ class State:
     # Wall-clock seconds spent in linearize and in the linear solves so far.
     linearize_seconds: float = 0.0
     linear_solve_seconds: float = 0.0
+    # The parameter blocks' slot values (B, S, 6), or None for a problem without them.
+    parameters: Tensor | None = None
 
     @functools.cached_property
     def xi(self) -> Tensor:
@@ -115,17 +131,23 @@ def _finite(x: Tensor) -> Tensor:
 
 
 def gradient_norm(lin) -> Tensor:
-    """max |g| over poses and points, (B,)."""
+    """max |g| over poses, parameter blocks and points, (B,)."""
     # One cat, so that a problem without points (pose terms only) works too.
     g = torch.cat((lin.pose_gradient.flatten(1), lin.point_gradient.flatten(1)), dim=1)
     return g.abs().amax(-1)
 
 
 def initial_state(
-    xi: Tensor, X: Tensor, data: PointMapData, factor: Tensor | None, config: SolverConfig
+    xi: Tensor,
+    X: Tensor,
+    data: PointMapData,
+    factor: Tensor | None,
+    config: SolverConfig,
+    parameters: Tensor | None = None,
 ) -> State:
     """The state before the first iteration: λ₀ (0 for Gauss-Newton, α for descent), the
-    linearization at (ξ, X), and the status of problems that start converged or non-finite."""
+    linearization at (ξ, X, parameter slots), and the status of problems that start
+    converged or non-finite."""
     B = xi.shape[0]
     lam = xi.new_full((B,), config.initial_lambda)
     if config.algorithm == "gauss_newton":
@@ -133,7 +155,9 @@ def initial_state(
     elif config.algorithm == "gradient_descent":
         lam = torch.full_like(lam, config.step_size)
     tick = time.perf_counter()
-    lin = linearize(xi, X, data, factor, config.jacobian, config.linear_solver == "schur")
+    lin = linearize(
+        xi, X, data, factor, config.jacobian, config.linear_solver == "schur", None, parameters
+    )
     seconds = time.perf_counter() - tick
     status = torch.zeros(B, dtype=torch.long, device=xi.device)
     status = torch.where(
@@ -155,6 +179,7 @@ def initial_state(
         lin=lin,
         accepted=torch.zeros(B, dtype=torch.long, device=xi.device),
         linearize_seconds=seconds,
+        parameters=parameters,
     )
 
 
@@ -254,6 +279,7 @@ def iterate(
     running = int(Status.RUNNING)
     s = state
     T, moved, X, lam, nu, status, lin = s.poses, s.moved, s.X, s.lam, s.nu, s.status, s.lin
+    P = s.parameters
     iterations, cost, accepted_total = s.iterations, s.cost, s.accepted
     # ‖ξ₀‖² per pose, for the poses that have not moved (:func:`_norm_bound`).
     start_square = s.start.detach().square().sum(-1)
@@ -274,8 +300,8 @@ def iterate(
             ok = factorization.ok
         tock = time.perf_counter()
         solve_seconds += tock - tick
-        T_new, X_new, moves = retract(T, X, dp, dl)
-        lin_new = linearize(None, X_new, data, factor, config.jacobian, structured, T_new)
+        T_new, X_new, moves, P_new = retract(T, X, dp, dl, P)
+        lin_new = linearize(None, X_new, data, factor, config.jacobian, structured, T_new, P_new)
         linearize_seconds += time.perf_counter() - tock
         with torch.no_grad():
             # The decisions: constants of the graph.
@@ -283,11 +309,14 @@ def iterate(
             # ‖x‖ of the parameter rule needs ξ = Log(T) only where a step is small enough for
             # the rule to hold with the upper bound of ‖x‖ (in a solve's last iterations if
             # ever): elsewhere the bound decides the same.
-            x_norm = _norm_bound(start_square, T.detach(), moved, X.detach())
+            x_norm = _norm_bound(start_square, T.detach(), moved, X.detach(), P)
             tolerance = config.parameter_tolerance
             if bool((step_norm <= tolerance * (x_norm + tolerance)).any()):
                 xi = _twists(s.start.detach(), T.detach(), moved)
-                x_norm = torch.sqrt(xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1))
+                x_square = xi.square().flatten(1).sum(-1) + X.square().flatten(1).sum(-1)
+                if P is not None:
+                    x_square = x_square + P.detach().square().flatten(1).sum(-1)
+                x_norm = torch.sqrt(x_square)
             old_cost, new_cost = cost.detach(), lin_new.cost.detach()
             finite = _finite(new_cost) & _finite(step_norm)
             predicted = None
@@ -309,17 +338,19 @@ def iterate(
         # Whole-batch outcomes (every solve of one problem) keep one of the two as it is.
         taken = int(accepted.sum())
         if taken == accepted.numel():
-            T, X, cost, lin = T_new, X_new, lin_new.cost, lin_new
+            T, X, P, cost, lin = T_new, X_new, P_new, lin_new.cost, lin_new
             moved = moved | moves
         elif taken > 0:
             take = accepted[:, None, None]
             T = torch.where(take[..., None], T_new, T)
             X = torch.where(take, X_new, X)
+            if P is not None:
+                P = torch.where(take, P_new, P)
             cost = torch.where(accepted, lin_new.cost, cost)
             moved = moved | (accepted[:, None] & moves)
             lin = _select(accepted, lin_new, lin)
         if lin is None:  # the two forms differ (rare): relinearize at the kept estimates
-            lin = linearize(None, X, data, factor, config.jacobian, structured, T)
+            lin = linearize(None, X, data, factor, config.jacobian, structured, T, P)
         with torch.no_grad():
             status = update_status(
                 status,
@@ -351,6 +382,7 @@ def iterate(
             accepted,
             linearize_seconds,
             solve_seconds,
+            P,
         )
         if on_step is not None:
             on_step(s)
@@ -396,20 +428,22 @@ def run(
     on_step: Callable[[State], None] | None,
     report_initial: bool = True,
     plan: LinearPlan | None = None,
+    parameters: Tensor | None = None,
 ) -> tuple[State, Histories]:
     """The whole solve from the initial guess (with autograd as the caller has it).
 
     ``on_step`` sees the state after every iteration (and the initial one when
     ``report_initial``); ``plan`` defaults to :meth:`LinearPlan.build`. Returns the final
-    state and the histories. Small problems run on one intra-op thread
-    (:mod:`torchslam._threads`)."""
+    state and the histories. ``parameters``: the parameter blocks' starting slot values
+    (B, S, 6) (:mod:`torchslam.objective.parameters`), for a problem that has them. Small
+    problems run on one intra-op thread (:mod:`torchslam._threads`)."""
     with threads_for(data):
-        return _run(pose_tangent, points, data, config, on_step, report_initial, plan)
+        return _run(pose_tangent, points, data, config, on_step, report_initial, plan, parameters)
 
 
-def _run(pose_tangent, points, data, config, on_step, report_initial, plan):
+def _run(pose_tangent, points, data, config, on_step, report_initial, plan, parameters=None):
     factor = whitening_factors(data)
-    state = initial_state(pose_tangent, points, data, factor, config)
+    state = initial_state(pose_tangent, points, data, factor, config, parameters)
     history = Histories([state.cost.detach().clone()], [state.lam.clone()], [])
 
     def record(s: State) -> None:
@@ -427,8 +461,16 @@ def _run(pose_tangent, points, data, config, on_step, report_initial, plan):
     return finish(state, config), history
 
 
-def result(state: State, history: Histories, start: float) -> SolveResult:
-    """The :class:`SolveResult` of a finished run."""
+def _parameter_values(state: State, layout) -> dict[str, Tensor]:
+    """The parameter blocks of the iterate by group, {name: (B, q, d)} (empty without)."""
+    if state.parameters is None or layout is None:
+        return {}
+    return layout.unpack(state.parameters)
+
+
+def result(state: State, history: Histories, start: float, layout=None) -> SolveResult:
+    """The :class:`SolveResult` of a finished run (``layout``: the problem's
+    :class:`~torchslam.objective.parameters.ParameterLayout`, for its parameter blocks)."""
     steps = (
         torch.stack(history.steps, dim=1)
         if history.steps
@@ -437,6 +479,7 @@ def result(state: State, history: Histories, start: float) -> SolveResult:
     return SolveResult(
         pose_tangent=state.xi,
         points=state.X,
+        parameters=_parameter_values(state, layout),
         status=[Status(int(s)) for s in state.status.tolist()],
         iterations=state.iterations,
         initial_cost=history.costs[0],

@@ -147,7 +147,7 @@ def _diagonal_keys(B: int, m: int, device: torch.device) -> Tensor:
 def _upper_term_pairs(data: PointMapData) -> tuple[Tensor, Tensor]:
     """(keys, positions) of the terms' pose-pair blocks that are upper blocks (i ≤ k): their
     keys and their positions in ``lin.terms.pair_blocks`` flattened over B."""
-    m = data.num_poses
+    m = data.num_slots
     keys = term_pair_keys(data).reshape(-1)
     i, k = (keys % (m * m)) // m, keys % m
     keep = (i <= k).nonzero().squeeze(1)
@@ -405,7 +405,7 @@ class LinearPlan:
         """The plan for solving ``data`` with ``config`` (linear_solver, reduced_solver,
         dense_max_variables, ordering, schur_chunk_size, damping)."""
         B = data.pose_index.shape[0]
-        m, n = data.num_poses, data.num_points
+        m, n = data.num_slots, data.num_points
         edges = coupling_edges(data)
         shape = (B, m, n)
         if config.linear_solver == "dense":
@@ -793,7 +793,7 @@ def choose_reduced_solver(
     """
     if reduced_solver != "auto":
         return reduced_solver
-    m, n = data.num_poses, data.num_points
+    m, n = data.num_slots, data.num_points
     if 6 * m <= dense_max_variables:
         return "dense"
     edges = coupling_edges(data) if edges is None else edges

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from torch import Tensor
 
@@ -80,6 +80,8 @@ class SolveResult:
     # linear solves (assembly, factorization, back-substitution).
     linearize_seconds: float = 0.0
     linear_solve_seconds: float = 0.0
+    # Optimized parameter blocks by group, {name: (B, q, d)} (empty without parameter blocks).
+    parameters: dict[str, Tensor] = field(default_factory=dict)
 
     @property
     def poses(self) -> Tensor:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import torch
 from torch import Tensor
@@ -20,6 +20,7 @@ from torch import Tensor
 from torchslam import _checks, _inference, losses
 from torchslam._threads import threads_for
 from torchslam.objective.data import PointMapData, check_data_values
+from torchslam.objective.parameters import pack_values
 from torchslam.problem import PointMapProblem
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig
@@ -97,6 +98,7 @@ def solve_tensors(
     data: PointMapData,
     config: SolverConfig | None = None,
     callback: Callable[[IterationInfo], None] | None = None,
+    parameters: Mapping[str, Tensor] | None = None,
 ) -> SolveResult:
     """Solve B problems given as tensors; returns new tensors (the inputs are not modified).
 
@@ -109,10 +111,14 @@ def solve_tensors(
         data: observations and structure (:class:`torchslam.problem.PointMapData`).
         config: solver options; default :class:`SolverConfig()`.
         callback: called after every iteration with an :class:`IterationInfo`.
+        parameters: initial parameter blocks {group: (B, q, d)}, every group of ``data``
+            (:mod:`torchslam.objective.parameters`); the result's ``parameters`` holds the
+            optimized ones.
     """
     config = check_solve_inputs("solve_tensors", pose_tangent, points, data, config)
     _check_callback("solve_tensors", callback)
-    return _solve_tensors(pose_tangent, points, data, config, callback)
+    slots = pack_values("solve_tensors", data.parameters, parameters, pose_tangent)
+    return _solve_tensors(pose_tangent, points, data, config, callback, slots)
 
 
 def _solve_tensors(
@@ -121,14 +127,16 @@ def _solve_tensors(
     data: PointMapData,
     config: SolverConfig,
     callback: Callable[[IterationInfo], None] | None,
+    slots: Tensor | None = None,
 ) -> SolveResult:
-    """:func:`solve_tensors` after its argument checks; all of it under the thread policy of
+    """:func:`solve_tensors` after its argument checks (``slots``: the parameter blocks'
+    packed values (B, S, 6), or None); all of it under the thread policy of
     :mod:`torchslam._threads` (the loop's, extended to the result's copies)."""
     with threads_for(data):
-        return _solve_tensors_threaded(pose_tangent, points, data, config, callback)
+        return _solve_tensors_threaded(pose_tangent, points, data, config, callback, slots)
 
 
-def _solve_tensors_threaded(pose_tangent, points, data, config, callback) -> SolveResult:
+def _solve_tensors_threaded(pose_tangent, points, data, config, callback, slots) -> SolveResult:
     start = time.perf_counter()
     count = [0]
 
@@ -155,10 +163,16 @@ def _solve_tensors_threaded(pose_tangent, points, data, config, callback) -> Sol
     # (the result's tensors are cloned, the callback's too).
     with torch.inference_mode(), _checks.validation(False):
         state, history = loop.run(
-            pose_tangent.detach().clone(), points.detach().clone(), data, config, report, False
+            pose_tangent.detach().clone(),
+            points.detach().clone(),
+            data,
+            config,
+            report,
+            False,
+            parameters=None if slots is None else slots.clone(),
         )
     with torch.no_grad():
-        return _inference.plain(loop.result(state, history, start))
+        return _inference.plain(loop.result(state, history, start, data.parameters))
 
 
 def solve(
@@ -189,8 +203,14 @@ def solve(
         )
     config = check_solve_inputs(fn, problem.pose_tangent, problem.points, problem.data, config)
     _check_callback(fn, callback)
-    result = _solve_tensors(problem.pose_tangent, problem.points, problem.data, config, callback)
+    blocks = dict(problem.parameter_blocks.items())
+    slots = pack_values(fn, problem.data.parameters, blocks, problem.pose_tangent)
+    result = _solve_tensors(
+        problem.pose_tangent, problem.points, problem.data, config, callback, slots
+    )
     with torch.no_grad():
         problem.pose_tangent.copy_(result.pose_tangent)
         problem.points.copy_(result.points)
+        for name, value in result.parameters.items():
+            problem.parameter_blocks[name].copy_(value)
     return result
