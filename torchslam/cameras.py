@@ -39,44 +39,61 @@ def _camera_point(T: Tensor, X: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return P, dP_dxi, R
 
 
+def _snavely_prediction(T: Tensor, X: Tensor, intrinsics: Tensor):
+    """The columns of the Snavely projection (each (...,)): P = R X + t, 1/z, p, r², ρ, and the
+    pixels u = f ρ p; one formula for :func:`snavely_project` and :func:`snavely_jacobians`
+    (the same bits). Written on columns: torch's elementwise kernels on (..., 3)-shaped
+    broadcasts are several times slower than on whole columns."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    x0, x1, x2 = X.unbind(-1)
+    P = [R[..., k, 0] * x0 + R[..., k, 1] * x1 + R[..., k, 2] * x2 + t[..., k] for k in range(3)]
+    inv = 1.0 / P[2]
+    px, py = -P[0] * inv, -P[1] * inv
+    f, k1, k2 = intrinsics.unbind(-1)
+    r2 = px * px + py * py
+    rho = 1.0 + r2 * (k1 + k2 * r2)
+    f_rho = f * rho
+    return R, (x0, x1, x2), inv, px, py, f, k1, k2, r2, rho, f_rho
+
+
 def snavely_project(T: Tensor, X: Tensor, intrinsics: Tensor) -> Tensor:
     """Snavely/BAL projection (module docstring): T (..., 4, 4) world → camera, X (..., 3),
     intrinsics (f, k1, k2) (..., 3) → pixels (..., 2)."""
-    P = (T[..., :3, :3] @ X[..., None]).squeeze(-1) + T[..., :3, 3]
-    p = -P[..., :2] / P[..., 2:]
-    f, k1, k2 = intrinsics[..., 0:1], intrinsics[..., 1:2], intrinsics[..., 2:3]
-    r2 = (p * p).sum(-1, keepdim=True)
-    return f * (1.0 + r2 * (k1 + k2 * r2)) * p
+    *_, px, py, _f, _k1, _k2, _r2, _rho, f_rho = _snavely_prediction(T, X, intrinsics)
+    return torch.stack((f_rho * px, f_rho * py), -1)
 
 
 def snavely_jacobians(
     T: Tensor, X: Tensor, intrinsics: Tensor
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(predicted (..., 2), ∂/∂δ (..., 2, 6), ∂/∂X (..., 2, 3), ∂/∂(f, k1, k2) (..., 2, 3))."""
-    P, dP_dxi, dP_dX = _camera_point(T, X)
-    z = P[..., 2:]
-    p = -P[..., :2] / z
-    f, k1, k2 = intrinsics[..., 0:1], intrinsics[..., 1:2], intrinsics[..., 2:3]
-    r2 = (p * p).sum(-1, keepdim=True)
-    rho = 1.0 + r2 * (k1 + k2 * r2)
-    predicted = f * rho * p
-    # ∂p/∂P = [[−1/z, 0, −p_x/z], [0, −1/z, −p_y/z]]  (p = −P_xy/z)
-    inv = 1.0 / z
-    zero = torch.zeros_like(inv)
-    dp_dP = torch.stack(
-        (
-            torch.cat((-inv, zero, -p[..., :1] * inv), -1),
-            torch.cat((zero, -inv, -p[..., 1:] * inv), -1),
-        ),
-        dim=-2,
-    )
-    # ∂(f ρ p)/∂p = f (ρ I + p ∂ρ/∂pᵀ), ∂ρ/∂p = 2 (k1 + 2 k2 r²) p
-    drho_dp = 2.0 * (k1 + 2.0 * k2 * r2) * p
-    eye = torch.eye(2, dtype=P.dtype, device=P.device)
-    du_dp = f[..., None] * (rho[..., None] * eye + p[..., :, None] * drho_dp[..., None, :])
-    du_dP = du_dp @ dp_dP
-    d_intrinsics = torch.stack((rho * p, f * r2 * p, f * r2 * r2 * p), dim=-1)
-    return predicted, du_dP @ dP_dxi, du_dP @ dP_dX, d_intrinsics
+    """(predicted (..., 2), ∂/∂δ (..., 2, 6), ∂/∂X (..., 2, 3), ∂/∂(f, k1, k2) (..., 2, 3)).
+
+    Derivation (row i of each block): with u = f ρ p, ∂u/∂p = f (ρ I + p ∂ρ/∂pᵀ) = A,
+    ∂ρ/∂p = 2 (k1 + 2 k2 r²) p, and p = −P_xy/z, the row g_i = ∂u_i/∂P · R of ∂u/∂X is
+    −(A_i1 R_0 + A_i2 R_1 + (A_i1 p_x + A_i2 p_y) R_2) / z (R_k the rows of R); then
+    ∂u_i/∂δ = (X × g_i, g_i), since ∂P/∂δ = [−R [X]× | R] and −g [X]× = (X × g)ᵀ; and
+    ∂u/∂(f, k1, k2) = (ρ p, f r² p, f r⁴ p).
+    """
+    R, (x0, x1, x2), inv, px, py, f, k1, k2, r2, rho, f_rho = _snavely_prediction(T, X, intrinsics)
+    dd = 2.0 * (k1 + 2.0 * k2 * r2)  # ∂ρ/∂p = dd · p
+    f_px, f_py = f * px, f * py
+    a11, a12 = f_rho + f_px * dd * px, f_px * dd * py
+    a21, a22 = f_py * dd * px, f_rho + f_py * dd * py
+    rows = []
+    for a1, a2 in ((a11, a12), (a21, a22)):
+        c = a1 * px + a2 * py
+        g = [-(a1 * R[..., 0, k] + a2 * R[..., 1, k] + c * R[..., 2, k]) * inv for k in range(3)]
+        cross = (x1 * g[2] - x2 * g[1], x2 * g[0] - x0 * g[2], x0 * g[1] - x1 * g[0])
+        rows.append((*cross, *g))
+    shape = px.shape
+    J_pose = torch.stack(rows[0] + rows[1], -1).reshape(*shape, 2, 6)
+    J_point = J_pose[..., 3:]
+    f_r2 = f * r2
+    d_intrinsics = torch.stack(
+        (rho * px, f_r2 * px, f_r2 * r2 * px, rho * py, f_r2 * py, f_r2 * r2 * py), -1
+    ).reshape(*shape, 2, 3)
+    predicted = torch.stack((f_rho * px, f_rho * py), -1)
+    return predicted, J_pose, J_point, d_intrinsics
 
 
 def pinhole_project(T: Tensor, X: Tensor, intrinsics: Tensor) -> Tensor:

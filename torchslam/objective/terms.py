@@ -593,14 +593,15 @@ def term_poses(term: Term, poses: Tensor) -> Tensor:
     """The poses each instance touches: poses (B, m, 4, 4) → (B, K, a, 4, 4) (bound term)."""
     B, m = poses.shape[:2]
     flat = torch.arange(B, device=poses.device)[:, None, None] * m + term.pose_index
-    return poses.reshape(B * m, 4, 4)[flat.reshape(-1)].reshape(*flat.shape, 4, 4)
+    rows = poses.reshape(B * m, 16).index_select(0, flat.reshape(-1))  # 2-D: a faster gather
+    return rows.reshape(*flat.shape, 4, 4)
 
 
 def term_points(term: Term, points: Tensor) -> Tensor:
     """The point each instance touches: points (B, n, 3) → (B, K, 3) (bound point term)."""
     B, n = points.shape[:2]
     flat = torch.arange(B, device=points.device)[:, None] * n + term.point_index
-    return points.reshape(B * n, 3)[flat.reshape(-1)].reshape(*flat.shape, 3)
+    return points.reshape(B * n, 3).index_select(0, flat.reshape(-1)).reshape(*flat.shape, 3)
 
 
 def _call_residual(
@@ -664,7 +665,8 @@ def term_parameters(term: Term, layout: ParameterLayout, slots: Tensor) -> dict[
         v = values[name]
         B, q, d = v.shape
         batch = torch.arange(B, device=index.device).reshape(B, *[1] * (index.dim() - 1))
-        out[name] = v.reshape(B * q, d)[(batch * q + index).reshape(-1)].reshape(*index.shape, d)
+        flat = (batch * q + index).reshape(-1)
+        out[name] = v.reshape(B * q, d).index_select(0, flat).reshape(*index.shape, d)
     return out
 
 

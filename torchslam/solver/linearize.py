@@ -313,7 +313,11 @@ def linearize(
         changes = dict(
             point_gradient=lin.point_gradient + terms.point_gradient,
             point_blocks=lin.point_blocks + terms.point_diagonal,
-            coupling=torch.cat((lin.coupling, terms.coupling), dim=1),
+            coupling=(
+                terms.coupling
+                if lin.coupling.shape[1] == 0
+                else torch.cat((lin.coupling, terms.coupling), dim=1)
+            ),
         )
     return dataclasses.replace(
         lin,
@@ -627,15 +631,18 @@ class TermAccumulator:
             cost=self.cost,
             gradient=self.gradient.reshape(B, m, 6),
             diagonal=self.diagonal.reshape(B, m, 6, 6),
-            pair_blocks=torch.cat(self.pairs, dim=1) if self.pairs else like.new_zeros(B, 0, 6, 6),
+            pair_blocks=_joined(self.pairs) if self.pairs else like.new_zeros(B, 0, 6, 6),
             jacobians=tuple(self.jacobians),
             scales=tuple(self.scales),
             point_gradient=self.point_gradient.reshape(B, n, 3),
             point_diagonal=self.point_diagonal.reshape(B, n, 3, 3),
-            coupling=(
-                torch.cat(self.couplings, dim=1) if self.couplings else like.new_zeros(B, 0, 6, 3)
-            ),
+            coupling=(_joined(self.couplings) if self.couplings else like.new_zeros(B, 0, 6, 3)),
         )
+
+
+def _joined(parts: list[Tensor]) -> Tensor:
+    """``torch.cat(parts, dim=1)``, without the copy of a single part."""
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
 
 
 def linearize_terms(

@@ -53,6 +53,7 @@ from torchslam.solver.linearize import (
     blocks_from_monomials,
     coupling_edges,
     monomials,
+    point_terms,
     term_pair_keys,
 )
 from torchslam.solver.segments import segment_sum
@@ -137,6 +138,221 @@ class PairStructure:
     @property
     def num_pairs(self) -> int:
         return self.first.numel()
+
+
+# Largest buffer of signature-pair blocks (entries) that :class:`InstancePairs` keeps.
+MAX_SIGNATURE_ENTRIES = 1 << 22
+# Instance pairs per piece of :class:`InstancePairs` (one GEMM of inner size 3·PIECE), and
+# pieces per step: a step's gathered operands (~2 MB) stay in cache and below the size at
+# which the allocator maps fresh pages for every call.
+PIECE = 32
+PIECES_PER_STEP = 256
+
+
+@dataclass
+class InstancePairs:
+    """The points' part of a dense S from whole term instances (terms that touch points).
+
+    An *instance* is what touches one point: a point observation (one pose), or one instance
+    of a term with ``point_index`` (its a' slots: poses and parameter blocks). Its coupling
+    W_k = J̃_slotsᵀ J̃_X is taken as one (D × 3) block over its *active* reduced columns only
+    (the 6 of each pose, the d_g of each parameter block; D the most of any instance, padded
+    with a dummy column), instead of one 6 × 3 block per (slot, point) edge. Each pair of
+    instances (k ≤ l) of one point adds Y_k W_lᵀ (Y = W V⁻¹; ½ of it for k = l) to the block
+    of its *signature pair* (the two instances' column sets). The pairs of one signature pair
+    (few: the cameras' pairs) are cut into pieces of ``PIECE`` pairs, so that a piece's sum
+    Σ_p Y_p W_pᵀ is one (D × 3·PIECE)·(3·PIECE × D) product of a batched GEMM (no per-pair
+    products, no (pairs, D, D) scratch); the pieces are summed per signature pair and laid
+    into the dense matrix with their mirror by one precomputed scatter. Work per iteration
+    O(pairs · D²), memory O(instances · D + signature pairs · D²).
+    """
+
+    # Per instance: its rows in the flat edge couplings (B·E'·6 rows of 3, + 1 zero row),
+    # (count, D); its point slot b·n + j, (count,).
+    rows: Tensor
+    point: Tensor
+    # The pieces (Q, PIECE): the first instance of each pair, an index into [Y; ½Y; 0]
+    # (self pairs read ½Y, padding the zero row), the second, into [W; 0]; and the
+    # signature-pair slot of each piece, (Q,).
+    piece_first: Tensor
+    piece_second: Tensor
+    piece_slot: Tensor
+    # Flat index into (B, N + 1, N + 1) of each entry of each signature-pair block and of its
+    # mirror, (P_sig · D²,) each; N = 6 · slots.
+    flat: Tensor
+    flat_mirror: Tensor
+    num_signature_pairs: int
+    size: int
+    # Some instance has fewer columns than D (its rows include the zero row).
+    padded: bool = False
+
+    @staticmethod
+    def build(data: PointMapData, edges: CouplingEdges, B: int, m: int, n: int):
+        """The structure of ``data``, or None when its signature pairs would exceed
+        ``MAX_SIGNATURE_ENTRIES``."""
+        device = edges.pose_index.device
+        N = 6 * m
+        E_total = edges.pose_index.shape[1]
+        batch = torch.arange(B, device=device)[:, None]
+        six = torch.arange(6, device=device)
+        groups = []  # (rows (B, K, D_t) into B·E'·6, columns (B, K, D_t), point (B, K), keep)
+        E = data.pose_index.shape[1]
+        if E > 0:
+            e = torch.arange(E, device=device)
+            rows = (batch * E_total + e)[..., None] * 6 + six
+            cols = 6 * data.pose_index[..., None] + six
+            keep = edges.active[:, :E]
+            groups.append((rows, cols, data.point_index, keep))
+        offset = E
+        layout = data.parameters
+        for term in data.terms:
+            if not term.has_point or n == 0:
+                continue
+            K, a = term.slot_index.shape[1:]
+            if a == 0:  # a term on points only: no coupling
+                continue
+            slots = term.slot_index  # (B, K, a)
+            # active columns of each slot position (the same for every instance of the term)
+            active = []
+            for position in range(a):
+                slot = int(slots.reshape(-1, a)[0, position]) if slots.numel() else 0
+                if slot < data.num_poses or layout is None:
+                    active.append(torch.ones(6, dtype=torch.bool))
+                else:
+                    active.append(layout.active[slot - data.num_poses])
+            active = torch.cat(active).to(device)  # (6a,)
+            local = torch.arange(6 * a, device=device)[active]  # (D_t,)
+            k = torch.arange(K, device=device)
+            edge = offset + k[:, None] * a + local // 6  # (K, D_t) edge of each column
+            rows = (batch[..., None] * E_total + edge) * 6 + local % 6
+            cols = 6 * slots.gather(2, (local // 6).expand(B, K, -1)) + local % 6
+            keep = edges.active[:, offset : offset + K * a].reshape(B, K, a).any(-1)
+            groups.append((rows, cols, term.point_index, keep))
+            offset += K * a
+        if not groups:
+            return None
+        D = max(g[0].shape[-1] for g in groups)
+        zero_row = B * E_total * 6
+        all_rows, all_cols, all_points = [], [], []
+        for rows, cols, point, keep in groups:
+            pad = D - rows.shape[-1]
+            if pad:
+                rows = torch.nn.functional.pad(rows, (0, pad), value=zero_row)
+                cols = torch.nn.functional.pad(cols, (0, pad), value=N)
+            all_rows.append(rows[keep])
+            all_cols.append(cols[keep])
+            all_points.append((batch.expand_as(point) * n + point)[keep])
+        rows, cols, point = (torch.cat(x) for x in (all_rows, all_cols, all_points))
+        # Signatures: (batch, columns) of each instance.
+        b_of = point // max(n, 1)
+        sig_key = torch.cat((b_of[:, None], cols), 1)
+        signatures, sig = _unique_rows(sig_key)
+        # Instances numbered by (signature, point): the pairs of a piece (one signature pair,
+        # in point order) then read nearly consecutive rows.
+        order = torch.from_numpy(np.lexsort((point.cpu().numpy(), sig.cpu().numpy())))
+        order = order.to(device)
+        rows, cols, point, sig = rows[order], cols[order], point[order], sig[order]
+        U = signatures.shape[0]
+        # Pairs of instances of one point, k ≤ l in point order.
+        order = torch.argsort(point, stable=True)
+        sorted_point = point[order]
+        _, counts = torch.unique_consecutive(sorted_point, return_counts=True)
+        start = torch.cumsum(counts, 0) - counts
+        per = torch.repeat_interleave(counts, counts)  # group size per sorted instance
+        pos_start = torch.repeat_interleave(start, counts)
+        position = torch.arange(order.numel(), device=device) - pos_start
+        span = per - position  # pairs (k, l ≥ k) of each sorted instance
+        first_sorted = torch.repeat_interleave(torch.arange(order.numel(), device=device), span)
+        local = torch.arange(first_sorted.numel(), device=device) - torch.repeat_interleave(
+            torch.cumsum(span, 0) - span, span
+        )
+        second_sorted = first_sorted + local
+        first, second = order[first_sorted], order[second_sorted]
+        pair_key = sig[first] * U + sig[second]
+        unique_pairs, pair_slot = torch.unique(pair_key, return_inverse=True)
+        P_sig = unique_pairs.numel()
+        if P_sig * D * D > MAX_SIGNATURE_ENTRIES:
+            return None
+        sig_a, sig_b = unique_pairs // U, unique_pairs % U
+        b = signatures[sig_a, 0]
+        r = signatures[sig_a, 1:]  # (P_sig, D)
+        c = signatures[sig_b, 1:]
+        size = N + 1
+        base = (b * size * size)[:, None, None]
+        flat = (base + r[:, :, None] * size + c[:, None, :]).reshape(-1)
+        flat_mirror = (base + c[:, None, :] * size + r[:, :, None]).reshape(-1)
+        # Pieces: the pairs of each signature pair, PIECE at a time.
+        count = rows.shape[0]
+        by_slot = torch.argsort(pair_slot, stable=True)
+        slot_sorted = pair_slot[by_slot]
+        counts = torch.bincount(slot_sorted, minlength=P_sig)
+        pieces = (counts + PIECE - 1) // PIECE
+        piece_start = torch.cumsum(pieces, 0) - pieces
+        pair_start = torch.cumsum(counts, 0) - counts
+        q = torch.arange(by_slot.numel(), device=device) - pair_start[slot_sorted]
+        piece = piece_start[slot_sorted] + q // PIECE
+        lane = q % PIECE
+        Q = int(pieces.sum())
+        f, g = first[by_slot], second[by_slot]
+        piece_first = torch.full((Q, PIECE), 2 * count, dtype=torch.long, device=device)
+        piece_second = torch.full((Q, PIECE), count, dtype=torch.long, device=device)
+        piece_first[piece, lane] = torch.where(f == g, count + f, f)
+        piece_second[piece, lane] = g
+        piece_slot = torch.repeat_interleave(torch.arange(P_sig, device=device), pieces)
+        padded = bool((rows == zero_row).any())
+        return InstancePairs(
+            rows,
+            point,
+            piece_first,
+            piece_second,
+            piece_slot,
+            flat,
+            flat_mirror,
+            P_sig,
+            size,
+            padded,
+        )
+
+    def points_part(self, coupling: Tensor, V_inv: Tensor, chunk: int, B: int) -> Tensor:
+        """Σ_j W_j V_j⁻¹ W_jᵀ as a dense (B, N, N) matrix, from the edge couplings
+        (B·E', 6, 3) and V⁻¹ (B·n, 3, 3)."""
+        rows = coupling.reshape(-1, 3)
+        if self.padded:  # a zero row for the padding columns
+            rows = torch.cat((rows, rows.new_zeros(1, 3)))
+        count, D = self.rows.shape
+        # [Wᵀ; 0] and [Yᵀ; ½Yᵀ; 0] per instance (count, 3, D), Yᵀ = V⁻¹ Wᵀ (V⁻¹ symmetric)
+        W_ext = rows.new_empty(count + 1, 3, D)
+        W = rows.index_select(0, self.rows.reshape(-1)).reshape(count, D, 3)
+        W_ext[:count] = W.transpose(1, 2)
+        W_ext[count] = 0.0
+        Y_ext = rows.new_empty(2 * count + 1, 3, D)
+        V_e = V_inv.reshape(-1, 9).index_select(0, self.point).reshape(count, 3, 3)
+        torch.matmul(V_e, W_ext[:count], out=Y_ext[:count])
+        torch.mul(Y_ext[:count], 0.5, out=Y_ext[count : 2 * count])
+        Y_ext[2 * count] = 0.0
+        buffer = rows.new_zeros(self.num_signature_pairs, D, D)
+        Q = self.piece_slot.numel()
+        step = max(1, min(chunk, PIECES_PER_STEP * PIECE) // PIECE)
+        for start in range(0, Q, step):
+            sl = slice(start, start + step)
+            first = self.piece_first[sl].reshape(-1)
+            left = Y_ext.view(-1, 3 * D).index_select(0, first).reshape(-1, 3 * PIECE, D)
+            right = W_ext.view(-1, 3 * D).index_select(0, self.piece_second[sl].reshape(-1))
+            right = right.reshape(-1, 3 * PIECE, D)
+            buffer.index_add_(0, self.piece_slot[sl], torch.bmm(left.transpose(1, 2), right))
+        size = self.size
+        dense = rows.new_zeros(B * size * size)
+        values = buffer.reshape(-1)
+        dense.index_add_(0, self.flat, values).index_add_(0, self.flat_mirror, values)
+        return dense.reshape(B, size, size)[:, : size - 1, : size - 1]
+
+
+def _unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
+    """(unique rows, inverse) of a long (R, c) tensor, through NumPy (torch.unique(dim=0)
+    compares rows one at a time); planning only."""
+    values, inverse = np.unique(x.cpu().numpy(), axis=0, return_inverse=True)
+    device = x.device
+    return torch.from_numpy(values).to(device), torch.from_numpy(inverse.reshape(-1)).to(device)
 
 
 def _diagonal_keys(B: int, m: int, device: torch.device) -> Tensor:
@@ -399,6 +615,8 @@ class LinearPlan:
     term_keys: Tensor | None = None
     # Index tensors made on first use and kept for the solve (_edge_slots, ...).
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    # The data the plan was built for (the instance structure reads its terms), or None.
+    _data: PointMapData | None = field(default=None, repr=False, compare=False)
 
     @staticmethod
     def build(data: PointMapData, config: SolverConfig) -> LinearPlan:
@@ -444,6 +662,7 @@ class LinearPlan:
             term_positions=term_positions,
             pair_slots=pair_slots,
             diagonal_slots=reduced.slots(_diagonal_keys(B, m, device)),
+            _data=data,
         )
         if edges.pose_index is data.pose_index:  # the edges are the observations: the
             # linearization's flat indices are the edge slots (one cached sparse matrix each)
@@ -502,6 +721,12 @@ class LinearPlan:
         V_inv, point_ok = self._point_inverse(lin, lam)
         W = lin.coupling.reshape(-1, 6, 3)
         elim = _BlockElimination(W, V_inv, pose_slot, point_slot, self.shape)
+        instances = self._instances()
+        if instances is not None:
+            B = self.shape[0]
+            C = instances.points_part(W, V_inv.reshape(-1, 3, 3), self.chunk_size, B)
+            factor = self._factor_dense(U, lin, -C)
+            return Factorization(factor, elim, point_ok, self.shape)
         pairs = self._pairs()
         upper = self._upper(U, lin)
         if pairs.num_pairs:
@@ -620,6 +845,17 @@ class LinearPlan:
         eye3 = _series.eye(3, V.dtype, V.device)
         V_inv = torch.cholesky_inverse(torch.where((info == 0)[..., None, None], LV, eye3))
         return V_inv, (info == 0).all(dim=-1)
+
+    def _instances(self) -> InstancePairs | None:
+        """The :class:`InstancePairs` of a dense reduced system whose points are touched by
+        terms (built once; None otherwise, or when too many signature pairs)."""
+        if "instances" not in self._cache:
+            value = None
+            if not self.sparse and self._data is not None and point_terms(self._data):
+                B, m, n = self.shape
+                value = InstancePairs.build(self._data, self.edges, B, m, n)
+            self._cache["instances"] = value
+        return self._cache["instances"]
 
     def _pairs(self) -> PairStructure:
         if self.pairs is None:
