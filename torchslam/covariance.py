@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -61,6 +61,7 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import so3
 from torchslam.objective.data import PointMapData
+from torchslam.objective.parameters import pack_values
 from torchslam.problem import PointMapProblem
 from torchslam.solver.config import SolverConfig
 from torchslam.solver.linearize import StructuredLinearization, linearize, whitening_factors
@@ -112,6 +113,10 @@ class MarginalCovariances:
     # How S⁻¹ (or H⁻¹) was formed: "dense" (batched Cholesky of the reduced system),
     # "sparse" (selected inverse of the sparse factor) or "full" (the whole system).
     method: str
+    # Σ of every parameter block by group, {name: (B, q, d, d)} in the block's own entries
+    # (x ← x + δ), zero for fixed blocks (empty without parameter blocks;
+    # :mod:`torchslam.objective.parameters`).
+    parameters: dict[str, Tensor] = field(default_factory=dict)
 
     def check(self) -> MarginalCovariances:
         """Self when every problem is ok; ValueError naming the first one that is not."""
@@ -245,15 +250,26 @@ def marginal_covariances(
         )
     if result is None:
         pose_tangent, point_values = problem.pose_tangent.detach(), problem.points.detach()
+        blocks = {k: v.detach() for k, v in problem.parameter_blocks.items()}
     elif isinstance(result, SolveResult):
         pose_tangent, point_values = result.pose_tangent, result.points
+        blocks = result.parameters
     else:
         raise TypeError(
             f"{fn}: argument 'result' must be the SolveResult of the solve or None, got "
             f"{_checks.describe(result)}"
         )
     return _marginals(
-        fn, pose_tangent, point_values, problem.data, config, poses, points, pairs, rank_tolerance
+        fn,
+        pose_tangent,
+        point_values,
+        problem.data,
+        config,
+        poses,
+        points,
+        pairs,
+        rank_tolerance,
+        blocks,
     )
 
 
@@ -267,10 +283,13 @@ def marginal_covariances_tensors(
     point_selection: bool | Sequence[int] | Tensor = True,
     pairs: Sequence[Sequence[int]] | Tensor | None = None,
     rank_tolerance: float | None = None,
+    parameters: dict[str, Tensor] | None = None,
 ) -> MarginalCovariances:
     """:func:`marginal_covariances` of B problems given as tensors (as
     :func:`torchslam.solve_tensors` takes them): the solution ``pose_tangent`` (B, m, 6) and
-    ``points`` (B, n, 3), the ``data``; ``point_selection`` selects the points' blocks."""
+    ``points`` (B, n, 3), the ``data``; ``point_selection`` selects the points' blocks;
+    ``parameters`` the solution's parameter blocks {group: (B, q, d)}, for data that has
+    them (the ``parameters`` of the solve's result)."""
     return _marginals(
         "marginal_covariances_tensors",
         pose_tangent,
@@ -281,6 +300,7 @@ def marginal_covariances_tensors(
         point_selection,
         pairs,
         rank_tolerance,
+        parameters,
     )
 
 
@@ -303,9 +323,11 @@ def _marginals_work(
     point_selection: object,
     pairs: object,
     rank_tolerance: object,
+    parameters: object = None,
 ) -> MarginalCovariances:
     # The solve's own checks of the solution and data (names the argument and the function).
     config = check_solve_inputs(fn, pose_tangent, points, data, config)
+    slots = pack_values(fn, data.parameters, parameters, pose_tangent)
     B, m, n = data.valid.shape[0], data.num_poses, data.num_points
     device = pose_tangent.device
     pose_index = _selection(fn, "poses", pose_selection, m, device)
@@ -326,8 +348,15 @@ def _marginals_work(
             whitening_factors(data),
             config.jacobian,
             config.linear_solver == "schur",
+            None,
+            slots,
         )
         plan = LinearPlan.build(data, config)
+        if plan.sparse and data.parameters is not None:
+            raise ValueError(
+                f"{fn}: covariances of a problem with parameter blocks need the dense reduced "
+                "solver; pass config=SolverConfig(reduced_solver='dense')"
+            )
         wants_grad = torch.is_grad_enabled() and any(
             isinstance(t, Tensor) and t.requires_grad
             for t in (lin.pose_blocks, lin.pose_gradient, getattr(lin, "coupling", None))
@@ -356,6 +385,10 @@ def _marginals_work(
     fixed_pair = data.fixed_poses[:, pair_index[:, 0]] | data.fixed_poses[:, pair_index[:, 1]]
     pairs_cov = torch.where(fixed_pair[..., None, None], 0.0, pairs_cov)
     bad = ~ok
+    blocks = {}
+    if data.parameters is not None:
+        blocks = _parameter_blocks(plan, factorization, data)
+        blocks = {k: torch.where(bad[:, None, None, None], math.nan, v) for k, v in blocks.items()}
     poses_cov = torch.where(bad[:, None, None, None], math.nan, poses_cov)
     points_cov = torch.where(bad[:, None, None, None], math.nan, points_cov)
     pairs_cov = torch.where(bad[:, None, None, None], math.nan, pairs_cov)
@@ -369,7 +402,25 @@ def _marginals_work(
         ok=ok,
         reason=reason,
         method=method,
+        parameters=blocks,
     )
+
+
+def _parameter_blocks(plan: LinearPlan, factorization, data: PointMapData) -> dict[str, Tensor]:
+    """Σ of every parameter block, {group: (B, q, d, d)}, from the inverse of the factored
+    reduced (or full) system: the rows and columns of each block's d entries in its slots
+    (:class:`~torchslam.objective.parameters.ParameterLayout`); zero for fixed blocks."""
+    layout = data.parameters
+    sigma = torch.cholesky_inverse(factorization.factor.L)
+    out = {}
+    device = sigma.device
+    for g, name in enumerate(layout.names):
+        q, d = layout.counts[g], layout.dims[g]
+        slots = layout.slot_index(name, torch.arange(q, device=device))  # (q, spb)
+        entries = (6 * slots[..., None] + torch.arange(6, device=device)).reshape(q, -1)[:, :d]
+        block = sigma[:, entries[:, :, None], entries[:, None, :]]
+        out[name] = torch.where(layout.fixed[g][..., None, None], 0.0, block)
+    return out
 
 
 # ------------------------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 Subcommands: ``demo`` (synthetic ICP-SLAM solve with live progress and a figure),
 ``bench`` (the solver benchmark), ``posegraph`` (optimize a g2o pose graph), ``register``
 (multiview registration of range scans), ``slam`` (ICP-SLAM on a sequence of depth images or
-LiDAR scans) and ``data`` (the named real data sets).
+LiDAR scans), ``ba`` (bundle adjustment of a BAL file) and ``data`` (the named real data
+sets).
 
 Options of every subcommand (and of ``torchslam`` itself): ``--quiet`` (only warnings and
 errors, on stderr), ``--verbose`` (also the library's log records: loggers
@@ -277,6 +278,19 @@ def _parser() -> Parser:
     slam_command.add_arguments(slam)
     add_common_options(slam)
 
+    from torchslam.cli import ba as ba_command
+
+    ba = sub.add_parser(
+        "ba",
+        help="bundle adjustment of a BAL file (cameras with intrinsics, points)",
+        description="Solve a Bundle Adjustment in the Large problem (each camera a pose plus "
+        "an intrinsics block (f, k1, k2), Snavely's projection) with Levenberg-Marquardt and "
+        "the Schur complement on the points; prints Ceres-like iteration lines and a summary; "
+        "--out writes the optimized problem in BAL format.",
+    )
+    ba_command.add_arguments(ba)
+    add_common_options(ba)
+
     data = sub.add_parser(
         "data",
         help="list, fetch or locate the named real data sets",
@@ -396,6 +410,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from torchslam.cli import slam
 
             return slam.run(args, echo=echo, warn=warn)
+        if args.command == "ba":
+            from torchslam.cli import ba
+
+            result = ba.run(args, echo=echo, warn=warn)
+            return solve_exit_status(result.status, warn)
         from torchslam.cli import register
 
         return register.run(args, echo=echo, warn=warn)

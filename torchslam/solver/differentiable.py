@@ -197,6 +197,14 @@ def solve_differentiable(
     """
     fn = "solve_differentiable"
     config = check_solve_inputs(fn, pose_tangent, points, data, config)
+    if data.parameters is not None:
+        raise ValueError(
+            f"{fn}: the problem has parameter blocks {list(data.parameters.names)} (variables "
+            "beyond poses and points), which the differentiable solve does not take yet; give "
+            "known values as a term's constants instead (e.g. ReprojectionTerm(intrinsics=...), "
+            "which may require grad: the gradient then reaches them), or solve with "
+            "torchslam.solve"
+        )
     _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2, dims="Bm")
     _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2, dims="Bn")
     _checks.check_same_kind(

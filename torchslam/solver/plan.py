@@ -321,29 +321,42 @@ class InstancePairs:
             rows = torch.cat((rows, rows.new_zeros(1, 3)))
         count, D = self.rows.shape
         # [Wᵀ; 0] and [Yᵀ; ½Yᵀ; 0] per instance (count, 3, D), Yᵀ = V⁻¹ Wᵀ (V⁻¹ symmetric)
-        W_ext = rows.new_empty(count + 1, 3, D)
-        W = rows.index_select(0, self.rows.reshape(-1)).reshape(count, D, 3)
-        W_ext[:count] = W.transpose(1, 2)
-        W_ext[count] = 0.0
-        Y_ext = rows.new_empty(2 * count + 1, 3, D)
+        Wt = rows.index_select(0, self.rows.reshape(-1)).reshape(count, D, 3).transpose(1, 2)
         V_e = V_inv.reshape(-1, 9).index_select(0, self.point).reshape(count, 3, 3)
-        torch.matmul(V_e, W_ext[:count], out=Y_ext[:count])
-        torch.mul(Y_ext[:count], 0.5, out=Y_ext[count : 2 * count])
-        Y_ext[2 * count] = 0.0
+        zero = rows.new_zeros(1, 3, D)
+        # With autograd (the unrolled backward) every step is out of place; without, the
+        # stacks are written in place (no copies).
+        graph = torch.is_grad_enabled() and (rows.requires_grad or V_inv.requires_grad)
+        if graph:
+            Yt = V_e @ Wt
+            W_ext = torch.cat((Wt, zero))
+            Y_ext = torch.cat((Yt, 0.5 * Yt, zero))
+        else:
+            W_ext = rows.new_empty(count + 1, 3, D)
+            W_ext[:count] = Wt
+            W_ext[count] = 0.0
+            Y_ext = rows.new_empty(2 * count + 1, 3, D)
+            torch.matmul(V_e, W_ext[:count], out=Y_ext[:count])
+            torch.mul(Y_ext[:count], 0.5, out=Y_ext[count : 2 * count])
+            Y_ext[2 * count] = 0.0
         buffer = rows.new_zeros(self.num_signature_pairs, D, D)
         Q = self.piece_slot.numel()
         step = max(1, min(chunk, PIECES_PER_STEP * PIECE) // PIECE)
         for start in range(0, Q, step):
             sl = slice(start, start + step)
             first = self.piece_first[sl].reshape(-1)
-            left = Y_ext.view(-1, 3 * D).index_select(0, first).reshape(-1, 3 * PIECE, D)
-            right = W_ext.view(-1, 3 * D).index_select(0, self.piece_second[sl].reshape(-1))
+            left = Y_ext.reshape(-1, 3 * D).index_select(0, first).reshape(-1, 3 * PIECE, D)
+            right = W_ext.reshape(-1, 3 * D).index_select(0, self.piece_second[sl].reshape(-1))
             right = right.reshape(-1, 3 * PIECE, D)
-            buffer.index_add_(0, self.piece_slot[sl], torch.bmm(left.transpose(1, 2), right))
+            product = torch.bmm(left.transpose(1, 2), right)
+            if graph:
+                buffer = buffer.index_add(0, self.piece_slot[sl], product)
+            else:
+                buffer.index_add_(0, self.piece_slot[sl], product)
         size = self.size
         dense = rows.new_zeros(B * size * size)
         values = buffer.reshape(-1)
-        dense.index_add_(0, self.flat, values).index_add_(0, self.flat_mirror, values)
+        dense = dense.index_add(0, self.flat, values).index_add(0, self.flat_mirror, values)
         return dense.reshape(B, size, size)[:, : size - 1, : size - 1]
 
 
