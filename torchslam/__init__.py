@@ -13,6 +13,7 @@ from torchslam.covariance import MarginalCovariances, marginal_covariances
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TrivialLoss, TukeyLoss
 from torchslam.objective import PointMapData
+from torchslam.objective.reprojection import ReprojectionTerm
 from torchslam.objective.terms import PointObservationTerm, PosePriorTerm, RelativePoseTerm, Term
 from torchslam.problem import PointMapProblem
 from torchslam.solver import (
@@ -35,6 +36,7 @@ __version__ = "0.1.0"
 _LAZY = (
     "alignment",
     "benchmark",
+    "bundle_adjustment",
     "cameras",
     "cli",
     "data",
@@ -75,6 +77,7 @@ __all__ = [
     "PointObservationTerm",
     "PosePriorTerm",
     "RelativePoseTerm",
+    "ReprojectionTerm",
     "SolveResult",
     "SolverConfig",
     "Status",

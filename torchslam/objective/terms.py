@@ -39,6 +39,13 @@ edge, :func:`torchslam.solver.linearize.coupling_edges`). Such a term may touch 
 all (``pose_index=None``: arity 0, e.g. a prior on a point). A pinhole reprojection term is in
 ``examples/bundle_adjustment.py``.
 
+Terms that touch parameter blocks. Given ``parameters={group: index}`` (index (K,) or (B, K),
+one block per instance, or (K, c) for c blocks), each instance also touches blocks of the
+problem's parameter group (camera intrinsics, calibrations: :mod:`torchslam.objective.
+parameters`), passed to :meth:`Term.residual` by the group's name, (..., d) or (..., c, d);
+``jacrev`` differentiates them as Euclidean increments, analytic :meth:`Term.jacobians` append
+a dict {group: ∂r/∂x}. :class:`torchslam.ReprojectionTerm` is the built-in one.
+
 Built-in terms (derivations in their docstrings):
 
 - :class:`RelativePoseTerm`: r_ij = Log(Z_ij⁻¹ · T_i · T_j⁻¹) with Z_ij ≈ T_i0 T_j0⁻¹, the

@@ -24,7 +24,11 @@ each coupling edge e of :func:`.linearize.coupling_edges` touches one point):
 the same point: the pair (a, b) with poses (i_a ≤ i_b) adds −Y_a W_bᵀ, Y_a = W_a V_j⁻¹, to the
 upper block (i_a, i_b); the terms' pose pairs add their blocks J̃_aᵀJ̃_b. Memory is
 O(E + P + pattern) with P = Σ_j (edges of j)², processed in chunks; the dense (6m+3n)² matrix
-is formed only by the "dense" method. A problem whose matrix is not positive definite is
+is formed only by the "dense" method. When terms touch the points (bundle adjustment) and S is
+dense, :class:`InstancePairs` forms the points' part per whole term instance instead (its
+active columns only: a camera's pose and intrinsics at once), the pairs' products summed per
+pair of column sets by batched GEMM pieces. The "poses" of S are its *slots*: the m poses,
+then the parameter blocks' slots (:mod:`torchslam.objective.parameters`). A problem whose matrix is not positive definite is
 reported (``ok`` False, zero step), never crashes the batch. For dense co-visibility with a
 dense reduced system, :meth:`LinearPlan.factorize_coupling_gemm` forms the points' part of S
 by one GEMM of the (6m × 3n) coupling matrix instead of per-pair products (the implicit
