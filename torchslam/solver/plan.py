@@ -29,8 +29,8 @@ dense, :class:`InstancePairs` forms the points' part per whole term instance ins
 active columns only: a camera's pose and intrinsics at once), the pairs' products summed per
 pair of column sets by batched GEMM pieces. The "poses" of S are its *slots*: the m poses,
 then the parameter blocks' slots (:mod:`torchslam.objective.parameters`). A problem whose
-matrix is not positive definite is reported (``ok`` False, zero step), never crashes the batch. For dense co-visibility with a
-dense reduced system, :meth:`LinearPlan.factorize_coupling_gemm` forms the points' part of S
+matrix is not positive definite is reported (``ok`` False, zero step), never crashes the
+batch. For dense co-visibility with a dense reduced system, :meth:`LinearPlan.factorize_coupling_gemm` forms the points' part of S
 by one GEMM of the (6m × 3n) coupling matrix instead of per-pair products (the implicit
 backward's exact Hessian uses it; the forward solve keeps :meth:`LinearPlan.factorize`).
 
