@@ -31,8 +31,9 @@ pair of column sets by batched GEMM pieces. The "poses" of S are its *slots*: th
 then the parameter blocks' slots (:mod:`torchslam.objective.parameters`). A problem whose
 matrix is not positive definite is reported (``ok`` False, zero step), never crashes the
 batch. For dense co-visibility with a dense reduced system,
-:meth:`LinearPlan.factorize_coupling_gemm` forms the points' part of S by one GEMM of the (6m × 3n) coupling matrix instead of per-pair products (the implicit
-backward's exact Hessian uses it; the forward solve keeps :meth:`LinearPlan.factorize`).
+:meth:`LinearPlan.factorize_coupling_gemm` forms the points' part of S by one GEMM of the
+(6m × 3n) coupling matrix instead of per-pair products (the implicit backward's exact Hessian
+uses it; the forward solve keeps :meth:`LinearPlan.factorize`).
 
 Adding a reduced solver means writing one class with the interface of :class:`DenseReduced`
 (``slots``, ``num_slots``, ``factor``) and choosing it in :meth:`LinearPlan.build`.
