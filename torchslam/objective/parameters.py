@@ -28,7 +28,6 @@ covariances and the implicit backward then treat poses and parameter blocks alik
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -233,22 +232,12 @@ def parameter_layout(
     )
 
 
-def num_slots(layout: ParameterLayout | None) -> int:
-    """S of a layout (0 without one)."""
-    return 0 if layout is None else layout.num_slots
-
-
-def slot_count(dim: int) -> int:
-    """⌈dim / 6⌉ slots of a block of ``dim`` entries."""
-    return math.ceil(dim / SLOT)
-
-
 def pack_values(
-    fn: str, layout: ParameterLayout | None, values: object, like: Tensor
+    fn: str, layout: ParameterLayout | None, values: object, like: Tensor, detach: bool = True
 ) -> Tensor | None:
     """The slot values (B, S, 6) of a solve's starting parameter blocks ``values`` ({name:
-    (B, q, d)}, every group of ``layout``), checked (errors name ``fn``); None without a
-    layout."""
+    (B, q, d)}, every group of ``layout``), checked (errors name ``fn``), detached unless
+    ``detach`` is False (the differentiable solve); None without a layout."""
     if layout is None:
         if values:
             raise ValueError(
@@ -279,4 +268,4 @@ def pack_values(
         _checks.check_same_kind(fn, pose_tangent=like, **{f"parameters['{name}']": v})
         if _checks.value_checks_active():
             _checks.check_finite(fn, f"parameters['{name}']", v)
-    return layout.pack({k: v.detach() for k, v in values.items()})
+    return layout.pack({k: v.detach() if detach else v for k, v in values.items()})

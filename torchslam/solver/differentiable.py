@@ -106,6 +106,7 @@ from torchslam._threads import threads_for
 from torchslam.lie import se3
 from torchslam.manifold import SE3Matrix
 from torchslam.objective.data import PointMapData, cost, cost_from_poses
+from torchslam.objective.parameters import pack_values
 from torchslam.solver import loop
 from torchslam.solver.config import SolverConfig, check_implicit_config
 from torchslam.solver.hessian import exact_hessian
@@ -166,6 +167,7 @@ def solve_differentiable(
     truncate_steps: int = 1,
     implicit: ImplicitConfig | None = None,
     on_unconverged: OnUnconverged = "warn",
+    parameters: dict[str, Tensor] | None = None,
 ) -> SolveResult:
     """Solve B problems like :func:`torchslam.solve_tensors`, differentiably (module doc).
 
@@ -184,6 +186,10 @@ def solve_differentiable(
             (module doc): "warn" (default: unrolled gradient of the iterations actually run
             for those problems, with a ``UserWarning``), "unroll" (the same, silently),
             "raise" (``RuntimeError``) or "implicit" (the implicit gradient anyway).
+        parameters: initial parameter blocks {group: (B, q, d)} of data that has them
+            (:mod:`torchslam.objective.parameters`); may require grad. Backward "unrolled",
+            "truncated" or "none" (the implicit backward does not take parameter blocks
+            yet); the result's ``parameters`` are differentiable like its poses.
 
     Returns:
         A :class:`SolveResult`; ``pose_tangent`` (B, m, 6), ``points`` (B, n, 3) and
@@ -197,13 +203,13 @@ def solve_differentiable(
     """
     fn = "solve_differentiable"
     config = check_solve_inputs(fn, pose_tangent, points, data, config)
-    if data.parameters is not None:
+    slots = pack_values(fn, data.parameters, parameters, pose_tangent, detach=False)
+    if slots is not None and backward == "implicit":
         raise ValueError(
             f"{fn}: the problem has parameter blocks {list(data.parameters.names)} (variables "
-            "beyond poses and points), which the differentiable solve does not take yet; give "
-            "known values as a term's constants instead (e.g. ReprojectionTerm(intrinsics=...), "
-            "which may require grad: the gradient then reaches them), or solve with "
-            "torchslam.solve"
+            "beyond poses and points), which backward='implicit' does not take yet; use "
+            "backward='unrolled' (or 'truncated'), or give known values as a term's constants "
+            "(e.g. ReprojectionTerm(intrinsics=...), which may require grad)"
         )
     _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2, dims="Bm")
     _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2, dims="Bn")
@@ -250,7 +256,7 @@ def solve_differentiable(
     implicit = implicit or ImplicitConfig()
 
     if backward == "none":
-        return solve_tensors(pose_tangent, points, data, config)
+        return solve_tensors(pose_tangent, points, data, config, parameters=parameters)
     if _checks.value_checks_active():
         _check_graphs_alive(fn, pose_tangent, points, data)
     if backward == "implicit":
@@ -258,10 +264,13 @@ def solve_differentiable(
     start = time.perf_counter()
     with _checks.validation(False):
         if backward == "unrolled":
-            state, history = loop.run(pose_tangent, points, data, config, None)
+            state, history = loop.run(pose_tangent, points, data, config, None, parameters=slots)
         else:
-            state, history = _run_truncated(pose_tangent, points, data, config, truncate_steps)
-    return _connected(loop.result(state, history, start), pose_tangent, points, data)
+            state, history = _run_truncated(
+                pose_tangent, points, data, config, truncate_steps, slots
+            )
+    result = loop.result(state, history, start, data.parameters)
+    return _connected(result, pose_tangent, points, data)
 
 
 def _connected(result: SolveResult, *inputs: object) -> SolveResult:
@@ -333,7 +342,12 @@ def _check_zero_weights_unrolled(
 
 
 def _run_truncated(
-    pose_tangent: Tensor, points: Tensor, data: PointMapData, config: SolverConfig, k: int
+    pose_tangent: Tensor,
+    points: Tensor,
+    data: PointMapData,
+    config: SolverConfig,
+    k: int,
+    slots: Tensor | None = None,
 ) -> tuple[loop.State, loop.Histories]:
     """Solve under no_grad keeping a snapshot per iteration, then re-run each problem with
     autograd on from the snapshot before its last k accepted iterations."""
@@ -343,7 +357,7 @@ def _run_truncated(
         snapshots.append(dataclasses.replace(s, lin=None))
 
     with torch.no_grad():
-        final, history = loop.run(pose_tangent, points, data, config, snapshot)
+        final, history = loop.run(pose_tangent, points, data, config, snapshot, parameters=slots)
     # Snapshot s holds every problem after s global iterations (a problem is active in every
     # global iteration before it stops). Problem b's window starts at the last snapshot that
     # still has k accepted iterations of b ahead, or at 0 when b accepted fewer than k.
@@ -359,8 +373,12 @@ def _run_truncated(
     at_start = begin == 0
     xi = torch.where(at_start[:, None, None], pose_tangent, pick("xi"))
     X = torch.where(at_start[:, None, None], points, pick("X"))
+    P = None
+    if slots is not None:
+        P = torch.where(at_start[:, None, None], slots, pick("parameters"))
     factor = whitening_factors(data)
-    lin = linearize(xi, X, data, factor, config.jacobian, config.linear_solver == "schur")
+    structured = config.linear_solver == "schur"
+    lin = linearize(xi, X, data, factor, config.jacobian, structured, None, P)
     state = loop.State(
         start=xi,
         poses=lin.poses,
@@ -373,6 +391,7 @@ def _run_truncated(
         cost=lin.cost,
         lin=lin,
         accepted=pick("accepted"),
+        parameters=P,
     )
     state = loop.iterate(state, data, factor, config, None)
     return loop.finish(state, config), history
