@@ -99,6 +99,7 @@ int main(int argc, char** argv) {
   options.function_tolerance = 1e-6;
   options.gradient_tolerance = 1e-10;
   options.parameter_tolerance = 1e-8;
+  options.minimizer_progress_to_stdout = std::getenv("BAL_CERES_VERBOSE") != nullptr;
   ceres::Solver::Summary summary;
   ceres::Solve(options, &problem, &summary);
   const double seconds =

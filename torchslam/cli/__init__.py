@@ -50,8 +50,10 @@ import argparse
 import contextlib
 import logging
 import math
+import re
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
 from typing import NoReturn
 
 __all__ = [
@@ -341,7 +343,23 @@ def run_guarded(prog: str, body: Callable[[], int]) -> int:
 
 
 def _one_line(error: BaseException) -> str:
-    return " ".join(str(error).split()) or type(error).__name__
+    """The error as one line for a command-line user: an OSError without its ``[Errno N]``,
+    and without the library function the message starts with (``read_g2o: …``), which names
+    the code rather than what went wrong."""
+    text = str(error)
+    if isinstance(error, OSError) and error.strerror:
+        text = error.strerror
+        if error.filename is not None and str(error.filename) not in text:
+            text = f"{text}: {error.filename}"
+    text = " ".join(text.split())
+    match = _FUNCTION_PREFIX.match(text)
+    if match and not Path(match.group(1)).exists():
+        text = text[match.end() :]
+    return text or type(error).__name__
+
+
+# "name: " at the start of a message, name a Python identifier (a library function's name).
+_FUNCTION_PREFIX = re.compile(r"([A-Za-z_][A-Za-z0-9_]*): ")
 
 
 def _check_version_last(parser: Parser, argv: list[str]) -> None:

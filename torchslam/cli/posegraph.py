@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -162,6 +163,11 @@ def initial_poses(graph: PoseGraph, init: str) -> torch.Tensor:
     return solve_initial_poses(graph, init)
 
 
+def _as_options(message: str) -> str:
+    """A library message's ``information='repair'`` as the option ``--information repair``."""
+    return re.sub(r"\binformation='([a-z]+)'", r"--information \1", message)
+
+
 def run_posegraph(
     options: PoseGraphOptions,
     echo: Callable[[str], None] = print,
@@ -202,7 +208,10 @@ def _run(
 ) -> PoseGraphSolveResult:
     with warnings.catch_warnings():  # the reader's warning: the summary below says it
         warnings.simplefilter("ignore", UserWarning)
-        graph = g2o.read_g2o(options.path, information=options.information)
+        try:
+            graph = g2o.read_g2o(options.path, information=options.information)
+        except ValueError as error:  # the reader's hints in the command line's words
+            raise ValueError(_as_options(str(error))) from error
     poses = initial_poses(graph, options.init)
     num_odometry = int(graph.odometry_mask().sum())
     echo(

@@ -160,12 +160,23 @@ def _floats(tokens: Iterable[str]) -> list[float]:
     return [_text.parse_finite_float(token) for token in tokens]
 
 
-def _normalize_quaternions(values: np.ndarray, start: int) -> None:
+# A quaternion whose norm is farther than this from 1 was not written as a unit quaternion
+# (files written with 6 significant digits are within ~1e-6): reading it warns.
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def _normalize_quaternions(values: np.ndarray, start: int) -> np.ndarray:
     """Normalize the (K, 4) quaternions at columns ``start:start + 4`` in place, robustly:
-    divided by their largest magnitude first (module docstring; none is zero)."""
+    divided by their largest magnitude first (module docstring; none is zero). Returns the
+    rows whose norm was not 1 within ``QUATERNION_NORM_TOLERANCE``."""
     q = values[:, start : start + 4]
-    q /= np.abs(q).max(axis=1, keepdims=True)
-    q /= np.sqrt(np.square(q).sum(axis=1, keepdims=True))
+    largest = np.abs(q).max(axis=1, keepdims=True)
+    q /= largest
+    norm = np.sqrt(np.square(q).sum(axis=1, keepdims=True))
+    q /= norm
+    with np.errstate(over="ignore"):
+        given = (largest * norm)[:, 0]
+    return np.flatnonzero(~(np.abs(given - 1.0) <= QUATERNION_NORM_TOLERANCE))
 
 
 def _symmetric_from_upper(upper: np.ndarray, n: int) -> np.ndarray:
@@ -563,8 +574,19 @@ def _parse_lines(lines: list[str], source: str, dtype: torch.dtype, information:
 
     vertex_array, edge_array = scan.vertex_values, scan.edge_values
     if dimension == 3:
-        _normalize_quaternions(vertex_array, 3)
-        _normalize_quaternions(edge_array, 3)
+        for array, lines_of, what in (
+            (vertex_array, scan.vertex_lines, "vertices"),
+            (edge_array, scan.edge_lines, "edges"),
+        ):
+            off = _normalize_quaternions(array, 3)
+            if off.size:
+                warnings.warn(
+                    f"parse_g2o: {source}: {off.size} of {len(lines_of)} {what} have a "
+                    f"quaternion whose norm is not 1 (the first on line {lines_of[int(off[0])]}"
+                    "); normalized, as g2o does. Check that the file holds (qx, qy, qz, qw)",
+                    UserWarning,
+                    stacklevel=3,
+                )
     largest = torch.finfo(dtype).max
     for array, lines_of in ((vertex_array, scan.vertex_lines), (edge_array, scan.edge_lines)):
         too_large = np.abs(array) > largest
