@@ -59,6 +59,7 @@ from torchslam.objective.data import (
 )
 from torchslam.objective.terms import (
     Term,
+    _cached,
     point_observation_jacobians,
     term_all_valid,
     term_blocks,
@@ -555,6 +556,81 @@ def instance_blocks(
     return cost, r, J, weight, JtJ, Jtr if weight is None else weight[..., None] * Jtr
 
 
+# A term is grouped (:class:`TermGrouping`) when its instances share at most one slot tuple
+# per this many instances, and its Gram blocks then come from pieces of PIECE instances.
+GROUPING_RATIO = 8
+PIECE = 32
+
+
+@dataclass(frozen=True)
+class TermGrouping:
+    """The instances of a term grouped by *signature*: the tuple of slots they touch (in
+    bundle adjustment every observation of one camera touches its pose and intrinsics).
+    The terms' blocks J̃_aᵀJ̃_b of one signature only ever enter the reduced system summed
+    (by slot pair), so a grouped term keeps them summed per signature — ``pair_blocks`` and
+    :func:`term_pair_keys` hold one block per signature and slot pair (U per problem,
+    padded to the most of any problem with zero blocks) instead of one per instance — and
+    :func:`linearize_terms` forms the sums by batched GEMM pieces of ``PIECE`` instances
+    (no per-instance products)."""
+
+    # Per problem the signatures' slots, long (B, U, a) (padding: slot 0, zero blocks).
+    slots: Tensor
+    # Flat signature b·U + u of each instance, long (B·K,).
+    signature: Tensor
+    # Pieces: flat instances b·K + k, (Q, PIECE) (padding: B·K, a zero row), and the flat
+    # signature of each, (Q,).
+    piece_rows: Tensor
+    piece_signature: Tensor
+
+
+def term_grouping(term: Term) -> TermGrouping | None:
+    """The :class:`TermGrouping` of a bound term, or None when its instances do not share
+    signatures enough (fewer than ``GROUPING_RATIO`` instances per signature: pose graphs);
+    cached on the term."""
+    return _cached(term, "_grouping_cache", (term.slot_index,), lambda: _grouping(term))
+
+
+def _grouping(term: Term) -> TermGrouping | None:
+    from torchslam.solver.plan import _unique_rows  # planning helper (one place)
+
+    slots = term.slot_index
+    B, K, a = slots.shape
+    if a == 0 or B * K < GROUPING_RATIO:
+        return None
+    device = slots.device
+    batch = torch.arange(B, device=device)[:, None, None].expand(B, K, 1)
+    unique, inverse = _unique_rows(torch.cat((batch, slots), -1).reshape(B * K, 1 + a))
+    count = unique.shape[0]
+    if count * GROUPING_RATIO > B * K:
+        return None
+    per_problem = torch.bincount(unique[:, 0], minlength=B)
+    U = int(per_problem.max())
+    start = torch.cumsum(per_problem, 0) - per_problem
+    flat = unique[:, 0] * U + torch.arange(count, device=device) - start[unique[:, 0]]
+    table = torch.zeros(B * U, a, dtype=torch.long, device=device)
+    table = table.index_copy(0, flat, unique[:, 1:]).reshape(B, U, a)
+    signature = flat[inverse]
+    order = torch.argsort(signature, stable=True)
+    counts = torch.bincount(signature, minlength=B * U)
+    pieces = (counts + PIECE - 1) // PIECE
+    piece_start = torch.cumsum(pieces, 0) - pieces
+    sig_sorted = signature[order]
+    position = torch.arange(B * K, device=device) - (torch.cumsum(counts, 0) - counts)[sig_sorted]
+    piece = piece_start[sig_sorted] + position // PIECE
+    Q = int(pieces.sum())
+    rows = torch.full((Q, PIECE), B * K, dtype=torch.long, device=device)
+    rows[piece, position % PIECE] = order
+    piece_signature = torch.repeat_interleave(torch.arange(B * U, device=device), pieces)
+    return TermGrouping(table, signature, rows, piece_signature)
+
+
+def _term_slots(term: Term) -> Tensor:
+    """The slots behind each of the term's blocks: per instance (B, K, a'), or per signature
+    (B, U, a') for a grouped term (:class:`TermGrouping`)."""
+    grouping = term_grouping(term)
+    return term.slot_index if grouping is None else grouping.slots
+
+
 def term_pair_keys(data: PointMapData) -> Tensor:
     """Block (b, i_a, i_b) of each of the ``pair_blocks`` as (b·m + i_a)·m + i_b, long (B, P),
     m the slots of the reduced system (poses, then parameter blocks)."""
@@ -563,7 +639,7 @@ def term_pair_keys(data: PointMapData) -> Tensor:
     batch = torch.arange(B, device=data.pose_index.device)[:, None]
     keys = []
     for term in data.terms:
-        slots = term.slot_index
+        slots = _term_slots(term)
         for a in range(term.slot_arity):
             for b in range(term.slot_arity):
                 if a != b:
@@ -612,17 +688,67 @@ class TermAccumulator:
         P = 6 * a
         slots = self.batch[..., None] * m + term.slot_index  # (B, K, a)
         self.cost = self.cost + cost
-        for i in range(a):
-            self.diagonal.index_add_(
-                0, slots[..., i].reshape(-1), pose_blocks[i][i].reshape(-1, 6, 6)
-            )
         self.gradient.index_add_(0, slots.reshape(-1), gradient[..., :P].reshape(-1, 6))
-        self.pairs.extend(pose_blocks[i][j] for i in range(a) for j in range(a) if i != j)
+        grouping = term_grouping(term)
+        if grouping is not None:  # the blocks summed per signature
+            U = grouping.slots.shape[1]
+            summed = [
+                [
+                    pose_blocks[i][j]
+                    .new_zeros(B * U, 6, 6)
+                    .index_add_(0, grouping.signature, pose_blocks[i][j].reshape(-1, 6, 6))
+                    for j in range(a)
+                ]
+                for i in range(a)
+            ]
+            self.add_blocks(term, summed)
+        else:
+            for i in range(a):
+                self.diagonal.index_add_(
+                    0, slots[..., i].reshape(-1), pose_blocks[i][i].reshape(-1, 6, 6)
+                )
+            self.pairs.extend(pose_blocks[i][j] for i in range(a) for j in range(a) if i != j)
         if term.has_point:
             point_slots = (self.batch * n + term.point_index).reshape(-1)
             self.point_gradient.index_add_(0, point_slots, gradient[..., P:].reshape(-1, 3))
             self.point_diagonal.index_add_(0, point_slots, point_block.reshape(-1, 3, 3))
             self.couplings.append(coupling.reshape(B, K * a, 6, 3))
+
+    def add_point_part(
+        self,
+        term: Term,
+        cost: Tensor,
+        gradient: Tensor,
+        point_block: Tensor | None,
+        coupling: Tensor | None,
+    ) -> None:
+        """:meth:`add` without the slot blocks (a grouped term adds them by
+        :meth:`add_blocks`): cost, gradient, and for a point term its point blocks and
+        couplings."""
+        B, m, n = self.B, self.m, self.n
+        K, a = term.slot_index.shape[1:]
+        P = 6 * a
+        slots = self.batch[..., None] * m + term.slot_index
+        self.cost = self.cost + cost
+        self.gradient.index_add_(0, slots.reshape(-1), gradient[..., :P].reshape(-1, 6))
+        if term.has_point:
+            point_slots = (self.batch * n + term.point_index).reshape(-1)
+            self.point_gradient.index_add_(0, point_slots, gradient[..., P:].reshape(-1, 3))
+            self.point_diagonal.index_add_(0, point_slots, point_block.reshape(-1, 3, 3))
+            self.couplings.append(coupling.reshape(B, K * a, 6, 3))
+
+    def add_blocks(self, term: Term, blocks) -> None:
+        """The Gram blocks of a grouped term (:class:`TermGrouping`) summed per signature:
+        ``blocks[i][j]`` (B·U, 6, 6) for its slot positions i, j (diagonal into the slots'
+        blocks, the others as its pair blocks)."""
+        grouping = term_grouping(term)
+        B, U, a = grouping.slots.shape
+        slots = (self.batch[..., None] * self.m + grouping.slots).reshape(B * U, a)
+        for i in range(a):
+            self.diagonal.index_add_(0, slots[:, i], blocks[i][i])
+        self.pairs.extend(
+            blocks[i][j].reshape(B, U, 6, 6) for i in range(a) for j in range(a) if i != j
+        )
 
     def result(self) -> TermLinearization:
         B, m, n = self.B, self.m, self.n
@@ -638,6 +764,27 @@ class TermAccumulator:
             point_diagonal=self.point_diagonal.reshape(B, n, 3, 3),
             coupling=(_joined(self.couplings) if self.couplings else like.new_zeros(B, 0, 6, 3)),
         )
+
+
+def _grouped_gram(J: Tensor, scale: Tensor | None, grouping: TermGrouping, a: int):
+    """Σ_k w_k J̃_kᵀJ̃_k per signature of a grouped term, as blocks [i][j] (B·U, 6, 6):
+    J the robustified slot blocks (B, K, d, 6a), ``scale`` w (B, K) or None; one batched
+    GEMM over pieces of PIECE instances (inner size d·PIECE)."""
+    B, K, d, P = J.shape
+    rows = torch.cat((J.reshape(B * K, d * P), J.new_zeros(1, d * P)))
+    right = rows.index_select(0, grouping.piece_rows.reshape(-1)).reshape(-1, PIECE * d, P)
+    if scale is None:
+        left = right
+    else:
+        w = torch.cat((scale.reshape(-1), scale.new_zeros(1)))
+        w = w.index_select(0, grouping.piece_rows.reshape(-1))
+        left = (right.reshape(-1, PIECE, d, P) * w.reshape(-1, PIECE, 1, 1)).reshape(right.shape)
+    U = grouping.slots.shape[1]
+    gram = J.new_zeros(B * U, P, P).index_add_(
+        0, grouping.piece_signature, torch.bmm(left.transpose(1, 2), right)
+    )
+    gram = gram.reshape(B * U, a, 6, a, 6)
+    return [[gram[:, i, :, j, :] for j in range(a)] for i in range(a)]
 
 
 def _joined(parts: list[Tensor]) -> Tensor:
@@ -693,15 +840,22 @@ def linearize_terms(
         Jt = Jw.transpose(-1, -2)
         if scale is not None:  # w on one side only (the products are symmetric to round-off)
             Jt = scale[..., None, None] * Jt
+        point_block = coupling = None
+        if has_point:
+            point_block = matmul(Jt[..., P:, :], Jw[..., P:])
+            coupling = matmul(Jt[..., :P, :], Jw[..., P:])
+        grouping = term_grouping(term)
+        if grouping is not None and not torch.is_grad_enabled():
+            # Σ J̃ᵀJ̃·w per signature by GEMM pieces (TermGrouping), then the slot blocks.
+            blocks = _grouped_gram(Jw[..., :P], scale, grouping, a)
+            total.add_point_part(term, term_cost, Jtr, point_block, coupling)
+            total.add_blocks(term, blocks)
+            continue
         # H[a, b] = J̃_aᵀJ̃_b·w of every instance, (a, a, B, K, 6, 6): each block contiguous.
         H = matmul(
             Jt[..., :P, :].reshape(B, K, a, 6, d).permute(2, 0, 1, 3, 4)[:, None],
             Jw[..., :P].reshape(B, K, d, a, 6).permute(3, 0, 1, 2, 4)[None],
         )
-        point_block = coupling = None
-        if has_point:
-            point_block = matmul(Jt[..., P:, :], Jw[..., P:])
-            coupling = matmul(Jt[..., :P, :], Jw[..., P:])
         total.add(term, term_cost, Jtr, H, point_block, coupling)
     return total.result()
 

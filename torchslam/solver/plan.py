@@ -366,11 +366,19 @@ class InstancePairs:
 
 
 def _unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
-    """(unique rows, inverse) of a long (R, c) tensor, through NumPy (torch.unique(dim=0)
-    compares rows one at a time); planning only."""
-    values, inverse = np.unique(x.cpu().numpy(), axis=0, return_inverse=True)
-    device = x.device
-    return torch.from_numpy(values).to(device), torch.from_numpy(inverse.reshape(-1)).to(device)
+    """(unique rows in lexicographic order, inverse) of a long (R, c) tensor with entries
+    ≥ 0: the rows ranked one column at a time (rank · (max + 1) + column, re-ranked by a 1-D
+    ``torch.unique``), which stays below R·(max + 1) (no overflow), c sorts of R keys;
+    planning only (``torch.unique(dim=0)`` compares rows one at a time)."""
+    rank = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+    if x.shape[0] == 0:
+        return x, rank
+    for column in x.unbind(1):
+        _, rank = torch.unique(rank * (int(column.max()) + 1) + column, return_inverse=True)
+    count = int(rank.max()) + 1 if rank.numel() else 0
+    first = torch.full((count,), x.shape[0], dtype=torch.long, device=x.device)
+    first = first.scatter_reduce(0, rank, torch.arange(x.shape[0], device=x.device), "amin")
+    return x[first], rank
 
 
 def _diagonal_keys(B: int, m: int, device: torch.device) -> Tensor:
