@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchslam import _inference
 from torchslam.lie import _series
 from torchslam.lie.so3 import hat
 from torchslam.objective.data import PointMapData
@@ -176,12 +177,13 @@ class InstancePairs:
     # (count, D); its point slot b·n + j, (count,).
     rows: Tensor
     point: Tensor
-    # The pieces (Q, PIECE): the first instance of each pair, an index into [Y; ½Y; 0]
-    # (self pairs read ½Y, padding the zero row), the second, into [W; 0]; and the
-    # signature-pair slot of each piece, (Q,).
+    # The pieces (Q, PIECE): the first instance of each pair, an index into [Y; 0], the
+    # second, into [W; 0] (padding: the zero row); the signature-pair slot of each piece,
+    # (Q,), and whether it holds self pairs (its product counts ½), bool (Q,).
     piece_first: Tensor
     piece_second: Tensor
     piece_slot: Tensor
+    piece_half: Tensor
     # Flat index into (B, N + 1, N + 1) of each entry of each signature-pair block and of its
     # mirror, (P_sig · D²,) each; N = 6 · slots.
     flat: Tensor
@@ -286,11 +288,13 @@ class InstancePairs:
         base = (b * size * size)[:, None, None]
         flat = (base + r[:, :, None] * size + c[:, None, :]).reshape(-1)
         flat_mirror = (base + c[:, None, :] * size + r[:, :, None]).reshape(-1)
-        # Pieces: the pairs of each signature pair, PIECE at a time.
+        # Pieces: the pairs of each signature pair, PIECE at a time, self pairs (k = k, whose
+        # products count ½: mirrored below) in pieces of their own.
         count = rows.shape[0]
-        by_slot = torch.argsort(pair_slot, stable=True)
-        slot_sorted = pair_slot[by_slot]
-        counts = torch.bincount(slot_sorted, minlength=P_sig)
+        group = 2 * pair_slot + (first == second)
+        by_slot = torch.argsort(group, stable=True)
+        slot_sorted = group[by_slot]
+        counts = torch.bincount(slot_sorted, minlength=2 * P_sig)
         pieces = (counts + PIECE - 1) // PIECE
         piece_start = torch.cumsum(pieces, 0) - pieces
         pair_start = torch.cumsum(counts, 0) - counts
@@ -298,12 +302,12 @@ class InstancePairs:
         piece = piece_start[slot_sorted] + q // PIECE
         lane = q % PIECE
         Q = int(pieces.sum())
-        f, g = first[by_slot], second[by_slot]
-        piece_first = torch.full((Q, PIECE), 2 * count, dtype=torch.long, device=device)
+        piece_first = torch.full((Q, PIECE), count, dtype=torch.long, device=device)
         piece_second = torch.full((Q, PIECE), count, dtype=torch.long, device=device)
-        piece_first[piece, lane] = torch.where(f == g, count + f, f)
-        piece_second[piece, lane] = g
-        piece_slot = torch.repeat_interleave(torch.arange(P_sig, device=device), pieces)
+        piece_first[piece, lane] = first[by_slot]
+        piece_second[piece, lane] = second[by_slot]
+        piece_group = torch.repeat_interleave(torch.arange(2 * P_sig, device=device), pieces)
+        piece_slot, piece_half = piece_group // 2, piece_group % 2 == 1
         padded = bool((rows == zero_row).any())
         return InstancePairs(
             rows,
@@ -311,6 +315,7 @@ class InstancePairs:
             piece_first,
             piece_second,
             piece_slot,
+            piece_half,
             flat,
             flat_mirror,
             P_sig,
@@ -325,7 +330,7 @@ class InstancePairs:
         if self.padded:  # a zero row for the padding columns
             rows = torch.cat((rows, rows.new_zeros(1, 3)))
         count, D = self.rows.shape
-        # [Wᵀ; 0] and [Yᵀ; ½Yᵀ; 0] per instance (count, 3, D), Yᵀ = V⁻¹ Wᵀ (V⁻¹ symmetric)
+        # [Wᵀ; 0] and [Yᵀ; 0] per instance (count, 3, D), Yᵀ = V⁻¹ Wᵀ (V⁻¹ symmetric)
         Wt = rows.index_select(0, self.rows.reshape(-1)).reshape(count, D, 3).transpose(1, 2)
         V_e = V_inv.reshape(-1, 9).index_select(0, self.point).reshape(count, 3, 3)
         zero = rows.new_zeros(1, 3, D)
@@ -333,17 +338,16 @@ class InstancePairs:
         # stacks are written in place (no copies).
         graph = torch.is_grad_enabled() and (rows.requires_grad or V_inv.requires_grad)
         if graph:
-            Yt = V_e @ Wt
             W_ext = torch.cat((Wt, zero))
-            Y_ext = torch.cat((Yt, 0.5 * Yt, zero))
+            Y_ext = torch.cat((V_e @ Wt, zero))
         else:
             W_ext = rows.new_empty(count + 1, 3, D)
             W_ext[:count] = Wt
             W_ext[count] = 0.0
-            Y_ext = rows.new_empty(2 * count + 1, 3, D)
+            Y_ext = rows.new_empty(count + 1, 3, D)
             torch.matmul(V_e, W_ext[:count], out=Y_ext[:count])
-            torch.mul(Y_ext[:count], 0.5, out=Y_ext[count : 2 * count])
-            Y_ext[2 * count] = 0.0
+            Y_ext[count] = 0.0
+        half = torch.where(self.piece_half, 0.5, 1.0).to(rows.dtype)[:, None, None]
         buffer = rows.new_zeros(self.num_signature_pairs, D, D)
         Q = self.piece_slot.numel()
         step = max(1, min(chunk, PIECES_PER_STEP * PIECE) // PIECE)
@@ -353,7 +357,7 @@ class InstancePairs:
             left = Y_ext.reshape(-1, 3 * D).index_select(0, first).reshape(-1, 3 * PIECE, D)
             right = W_ext.reshape(-1, 3 * D).index_select(0, self.piece_second[sl].reshape(-1))
             right = right.reshape(-1, 3 * PIECE, D)
-            product = torch.bmm(left.transpose(1, 2), right)
+            product = torch.bmm(left.transpose(1, 2), right) * half[sl]
             if graph:
                 buffer = buffer.index_add(0, self.piece_slot[sl], product)
             else:
@@ -843,10 +847,13 @@ class LinearPlan:
         return _DenseCholesky.of(DenseReduced.add_diagonal(points_part, U))
 
     def _kept(self, name: str, compute):
-        """``compute()`` made once per plan, kept under ``name``."""
+        """``compute()`` made once per plan, kept under ``name`` (normal tensors even when
+        made in a solve's inference mode, so that what caches per index tensor, e.g.
+        :func:`.segments.segment_sum`'s sparse matrices, keeps them too)."""
         value = self._cache.get(name)
         if value is None:
-            value = self._cache[name] = compute()
+            with _inference.outside():
+                value = self._cache[name] = compute()
         return value
 
     def _edge_slots(self) -> tuple[Tensor, Tensor]:
