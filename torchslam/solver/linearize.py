@@ -771,7 +771,9 @@ def _grouped_gram(J: Tensor, scale: Tensor | None, grouping: TermGrouping, a: in
     J the robustified slot blocks (B, K, d, 6a), ``scale`` w (B, K) or None; one batched
     GEMM over pieces of PIECE instances (inner size d·PIECE)."""
     B, K, d, P = J.shape
-    rows = torch.cat((J.reshape(B * K, d * P), J.new_zeros(1, d * P)))
+    rows = J.new_empty(B * K + 1, d * P)  # the blocks, then a zero row for the padding
+    rows[: B * K].view(B, K, d, P).copy_(J)
+    rows[B * K] = 0.0
     right = rows.index_select(0, grouping.piece_rows.reshape(-1)).reshape(-1, PIECE * d, P)
     if scale is None:
         left = right
