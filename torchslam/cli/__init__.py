@@ -163,7 +163,9 @@ def add_threads_argument(parser: argparse.ArgumentParser) -> None:
         "--threads",
         type=int_range(1, 1024),
         default=DEFAULT_THREADS,
-        help=f"torch CPU threads [1, 1024] ({DEFAULT_THREADS}; see 'torchslam --help')",
+        help=f"torch CPU threads [1, 1024] (default {DEFAULT_THREADS}: on a CPU shared with "
+        "other work a second thread waits for a busy core; more pay only for large dense "
+        "systems)",
     )
 
 
@@ -213,7 +215,9 @@ def _parser() -> Parser:
         prog="torchslam",
         description="ICP-SLAM as batched, differentiable least squares on SE(3).",
         epilog="Exit status: 0 success, 1 a solve failed (NON_FINITE, LINEAR_SOLVE_FAILED), "
-        "2 bad arguments or input files, 3 posegraph --certify: not certified, 130 interrupted.",
+        "2 bad arguments or input files, 3 posegraph --certify: not certified, 130 interrupted. "
+        "Threads: every command runs torch on --threads N CPU threads, 1 by default (on a CPU "
+        "shared with other work a second thread waits for a busy core).",
     )
     add_common_options(parser, top_level=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -238,9 +242,10 @@ def _parser() -> Parser:
 
     bench = sub.add_parser(
         "bench",
-        help="run the solver benchmark (cases S, M, L, O, BATCH)",
-        description="Time the solver on the synthetic cases S, M, L, O, BATCH (float64), compare "
-        "with scipy.optimize.least_squares, write bench_solver.json and bench_solver.png.",
+        help="run the solver benchmark (cases S, M, L, O, BATCH, TRAIN)",
+        description="Time the solver on the synthetic cases S, M, L, O, BATCH and TRAIN "
+        "(float64), compare with scipy.optimize.least_squares, write bench_solver.json and "
+        "bench_solver.png.",
     )
     bench_command.add_arguments(bench)
     add_common_options(bench)

@@ -38,13 +38,29 @@ __all__ = ["add_arguments", "main", "run"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``torchslam bench``."""
     parser.add_argument(
-        "--cases", nargs="+", default=["S", "M", "L", "O", "BATCH", "TRAIN"], choices=list(REPEATS)
+        "--cases",
+        nargs="+",
+        default=["S", "M", "L", "O", "BATCH", "TRAIN"],
+        choices=list(REPEATS),
+        metavar="CASE",
+        help="which cases (all): S, M, L (one problem of 10, 50, 200 poses), O (M with 10%% "
+        "outliers, Huber), BATCH (64 S problems at once), TRAIN (BATCH's forward solve plus the "
+        "implicit backward to the observations)",
     )
     parser.add_argument(
-        "--repeats", type=int_range(1, 1000), default=None, help="runs per case [1, 1000] (median)"
+        "--repeats",
+        type=int_range(1, 1000),
+        default=None,
+        help="runs per case, median [1, 1000] (default per case: "
+        + ", ".join(f"{k} {v}" for k, v in REPEATS.items())
+        + ")",
     )
     parser.add_argument("--quick", action="store_true", help="2 repeats, no scipy, no memory")
-    parser.add_argument("--no-scipy", action="store_true")
+    parser.add_argument(
+        "--no-scipy",
+        action="store_true",
+        help="do not run scipy.optimize.least_squares beside each case (it is the slow part)",
+    )
     add_threads_argument(parser)
     parser.add_argument(
         "--thread-counts",

@@ -149,7 +149,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1,
         help=f"independent problems {limits('batch_size')} (1); batch × poses × points ≤ 1e8",
     )
-    parser.add_argument("--jacobian", choices=["analytic", "jacrev"], default="analytic")
+    parser.add_argument(
+        "--jacobian",
+        choices=["analytic", "jacrev"],
+        default="analytic",
+        help="Jacobian blocks: analytic (default) or torch.func.jacrev (the same iterates)",
+    )
     parser.add_argument("--seed", type=integer("seed"), default=0, help="random seed (0)")
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
     add_threads_argument(parser)

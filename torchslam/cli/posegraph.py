@@ -109,7 +109,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="LM iterations [1, 100000] (100)",
     )
     parser.add_argument(
-        "--linear-solver", choices=["auto", "sparse", "dense"], default="auto", help="(auto)"
+        "--linear-solver",
+        choices=["auto", "sparse", "dense"],
+        default="auto",
+        help="factorization of the reduced system: sparse (SciPy SuperLU, fill-reducing "
+        "ordering), dense (batched Cholesky), or auto (default: sparse when its symbolic "
+        "factorization predicts far less work)",
     )
     add_threads_argument(parser)
     # --- objective and certificate (issue 14) ---
