@@ -420,3 +420,85 @@ def test_cli_writes_the_covariance_file(tmp_path, capsys):
     assert np.allclose(matrices, matrices.transpose(0, 2, 1), rtol=1e-12, atol=0)
     code = cli.main(["posegraph", str(path), "--covariance", str(tmp_path)])
     assert code == 2 and "--covariance" in capsys.readouterr().err
+
+
+def _se2_exp(d):
+    x, y, th = d[..., 0], d[..., 1], d[..., 2]
+    small = th.abs() < 1e-9
+    t = torch.where(small, torch.ones_like(th), th)
+    a = torch.where(small, 1 - th**2 / 6, torch.sin(t) / t)
+    b = torch.where(small, th / 2, (1 - torch.cos(t)) / t)
+    c, s = torch.cos(th), torch.sin(th)
+    T = torch.zeros(*d.shape[:-1], 3, 3, dtype=d.dtype)
+    T[..., 0, 0], T[..., 0, 1], T[..., 1, 0], T[..., 1, 1] = c, -s, s, c
+    T[..., 0, 2], T[..., 1, 2], T[..., 2, 2] = a * x - b * y, b * x + a * y, 1.0
+    return T
+
+
+def _se2_log(T):
+    th = torch.atan2(T[..., 1, 0], T[..., 0, 0])
+    small = th.abs() < 1e-9
+    t = torch.where(small, torch.ones_like(th), th)
+    a = torch.where(small, 1 - th**2 / 6, torch.sin(t) / t)
+    b = torch.where(small, th / 2, (1 - torch.cos(t)) / t)
+    det = a * a + b * b
+    px, py = T[..., 0, 2], T[..., 1, 2]
+    return torch.stack(((a * px + b * py) / det, (-b * px + a * py) / det, th), -1)
+
+
+def test_2d_graph_covariances_are_planar_and_match_the_2d_hessian(tmp_path):
+    """A VERTEX_SE2/EDGE_SE2 graph yields 3 × 3 (x, y, θ) blocks (GTSAM's Pose2 convention,
+    body frame) equal to the inverse of the planar Gauss-Newton Hessian built here by
+    brute force on SE(2); the --covariance file holds 9 values per vertex. Tolerance: both
+    invert a ~1e4-conditioned 12 × 12 matrix in float64: 1e-8 relative is far above
+    round-off."""
+    g = torch.Generator().manual_seed(0)
+    n = 5
+    truth = torch.cumsum(torch.tensor([[1.0, 0.2, 0.3]] * n, dtype=torch.float64), 0)
+    truth[0] = 0
+    edges = [(i, i + 1) for i in range(n - 1)] + [(0, 3), (1, 4)]
+    info = "300 20 5 200 -3 900"  # upper triangle of (x, y, θ), g2o's order
+    lines = [f"VERTEX_SE2 {i} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f}" for i, p in enumerate(truth)]
+    Ts = torch.stack([_T2(p) for p in truth])
+    for i, j in edges:  # g2o's (x, y, θ): the relative pose's translation and angle
+        rel = torch.linalg.inv(Ts[i]) @ Ts[j]
+        z = torch.stack((rel[0, 2], rel[1, 2], torch.atan2(rel[1, 0], rel[0, 0])))
+        z = z + 0.02 * torch.randn(3, generator=g, dtype=torch.float64)
+        lines.append(f"EDGE_SE2 {i} {j} {z[0]:.9f} {z[1]:.9f} {z[2]:.9f} {info}")
+    path = tmp_path / "planar.g2o"
+    path.write_text("\n".join(lines) + "\n")
+    graph = ts.io.g2o.read_g2o(path)
+    result = ts.posegraph.solve.solve_pose_graph(graph)
+    cov = ts.posegraph.marginal_covariances(graph, result)
+    assert cov.dimension == 2 and cov.vertices.shape == (n, 3, 3)
+    # the planar Hessian by brute force: residual Log(Z⁻¹ T_i⁻¹ T_j), T ← T·Exp(δ), (x, y, θ)
+    P = result.poses
+    T2 = torch.zeros(n, 3, 3, dtype=torch.float64)
+    T2[:, :2, :2], T2[:, :2, 2], T2[:, 2, 2] = P[:, :2, :2], P[:, :2, 3], 1.0
+    Z = torch.stack(
+        [_T2(torch.tensor([float(v) for v in ln.split()[3:6]], dtype=torch.float64))
+         for ln in lines if ln.startswith("EDGE")]
+    )  # fmt: skip
+    u = torch.tensor([float(v) for v in info.split()], dtype=torch.float64)
+    Omega = torch.tensor([[u[0], u[1], u[2]], [u[1], u[3], u[4]], [u[2], u[4], u[5]]])
+
+    def residuals(d):
+        T = T2 @ _se2_exp(d.reshape(n, 3))
+        out = [_se2_log(torch.linalg.inv(Z[k]) @ torch.linalg.inv(T[i]) @ T[j])
+               for k, (i, j) in enumerate(edges)]  # fmt: skip
+        return torch.stack(out)
+
+    J = torch.func.jacrev(residuals)(torch.zeros(3 * n, dtype=torch.float64))  # (E, 3, 3n)
+    H = torch.einsum("eai,ab,ebj->ij", J, Omega, J)[3:, 3:]  # vertex 0 fixed
+    expected = torch.linalg.inv(H).reshape(n - 1, 3, n - 1, 3).diagonal(0, 0, 2).permute(2, 0, 1)
+    torch.testing.assert_close(cov.vertices[1:], expected, rtol=1e-8, atol=1e-12)
+    assert bool((cov.vertices[0] == 0).all())
+    out = tmp_path / "cov.txt"
+    assert cli.main(["posegraph", str(path), "--covariance", str(out), "-q"]) == 0
+    rows = [line.split() for line in out.read_text().splitlines()]
+    assert len(rows) == n and all(len(r) == 10 for r in rows)
+
+
+def _T2(p):
+    c, s = torch.cos(p[2]), torch.sin(p[2])
+    return torch.tensor([[c, -s, p[0]], [s, c, p[1]], [0.0, 0.0, 1.0]], dtype=torch.float64)

@@ -356,7 +356,8 @@ def add_covariance_argument(parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="write each vertex's marginal covariance here, one line 'id c11 c12 … c66' "
         "(36 values row-major, (ω, v) order, right perturbation of the body → world vertex "
-        "pose, relative to the fixed vertex)",
+        "pose, relative to the fixed vertex); for a 2D graph 'id c11 … c33' in (x, y, θ) "
+        "order, as GTSAM's Pose2 marginals",
     )
 
 

@@ -12,6 +12,13 @@ covariances are relative to the fixed vertices (the solve's gauge), which have z
 Large graphs go through the sparse factor's selected inverse (all 2,500 vertices of
 sphere2500 in about a second), never a dense inverse.
 
+A 2D graph (``graph.dimension == 2``, read from ``VERTEX_SE2``/``EDGE_SE2``) is solved lifted to
+SE(3) with out-of-plane terms of the lifting's own weights; at a planar solution its Hessian
+does not couple the plane's directions (x, y, θ) = (v_x, v_y, ω_z) with the others (by the
+mirror symmetry z → −z), so their marginal is the planar graph's own. Its blocks are 3 × 3 in
+GTSAM's Pose2 order (x, y, θ), body frame (the right perturbation T·Exp(δ) of SE(2)), and
+nothing of the invented out-of-plane directions is returned.
+
 ``torchslam posegraph FILE --covariance OUT.txt`` writes them (:func:`write_covariances`).
 """
 
@@ -42,16 +49,24 @@ __all__ = ["VertexCovariances", "marginal_covariances", "write_covariances"]
 
 @dataclass
 class VertexCovariances:
-    """Marginal covariances of pose-graph vertices ((ω, v), right perturbation T_i·Exp(δ))."""
+    """Marginal covariances of pose-graph vertices (right perturbation T_i·Exp(δ)): (ω, v)
+    6 × 6 blocks for a 3D graph, (x, y, θ) 3 × 3 blocks for a 2D one (module doc)."""
 
-    # Cov(δ_i) of the vertices ``vertex_index`` (indices into graph.poses), (V, 6, 6).
+    # Cov(δ_i) of the vertices ``vertex_index`` (indices into graph.poses), (V, 6, 6) or, for
+    # a 2D graph, (V, 3, 3).
     vertices: Tensor
     vertex_index: Tensor
-    # Cov(δ_i, δ_k) of the vertex pairs ``pair_index`` (R, 2), (R, 6, 6).
+    # Cov(δ_i, δ_k) of the vertex pairs ``pair_index`` (R, 2), (R, 6, 6) or (R, 3, 3).
     pairs: Tensor
     pair_index: Tensor
     # "dense" or "sparse": how the inverse's blocks were formed.
     method: str
+    # 3 (blocks in (ω, v)) or 2 (blocks in (x, y, θ)), the graph's.
+    dimension: int = 3
+
+
+# The (x, y, θ) entries of an SE(3) tangent (ω, v): v_x, v_y, ω_z.
+PLANAR = (3, 4, 2)
 
 
 def marginal_covariances(
@@ -145,21 +160,29 @@ def marginal_covariances(
         )
     if not bool(covariances.ok[0]):
         raise ValueError(f"{fn}: {covariances.reason[0].replace('pose ', 'vertex index ')}")
+    blocks, cross = covariances.poses[0], covariances.pairs[0]
+    if graph.dimension == 2:
+        planar = torch.tensor(PLANAR, device=blocks.device)
+        blocks = blocks[:, planar][:, :, planar]
+        cross = cross[:, planar][:, :, planar]
     return VertexCovariances(
-        vertices=covariances.poses[0],
+        vertices=blocks,
         vertex_index=covariances.pose_index,
-        pairs=covariances.pairs[0],
+        pairs=cross,
         pair_index=covariances.pair_index,
         method=covariances.method,
+        dimension=graph.dimension,
     )
 
 
 def write_covariances(path: str | Path, graph: PoseGraph, covariances: VertexCovariances) -> None:
-    """Write one line per vertex: its id and the 36 entries of its 6 × 6 covariance, row-major,
-    (ω, v) order, right perturbation of the body → world vertex pose: ``id c11 c12 … c66``
-    (``%.17g``, exact float64 round trip)."""
+    """Write one line per vertex: its id and the entries of its covariance, row-major, right
+    perturbation of the body → world vertex pose: ``id c11 c12 … c66`` in (ω, v) order for a
+    3D graph, ``id c11 … c33`` in (x, y, θ) order for a 2D one (``%.17g``, exact float64
+    round trip)."""
     ids = graph.ids[covariances.vertex_index].tolist()
-    rows = covariances.vertices.detach().cpu().double().reshape(-1, 36).tolist()
+    size = covariances.vertices.shape[-1]
+    rows = covariances.vertices.detach().cpu().double().reshape(-1, size * size).tolist()
     lines = [
         " ".join([str(i)] + [f"{c:.17g}" for c in row]) for i, row in zip(ids, rows, strict=True)
     ]
