@@ -411,7 +411,7 @@ def _parameter_blocks(plan: LinearPlan, factorization, data: PointMapData) -> di
     reduced (or full) system: the rows and columns of each block's d entries in its slots
     (:class:`~torchslam.objective.parameters.ParameterLayout`); zero for fixed blocks."""
     layout = data.parameters
-    sigma = torch.cholesky_inverse(factorization.factor.L)
+    sigma = factorization.factor.inverse()
     out = {}
     device = sigma.device
     for g, name in enumerate(layout.names):
@@ -523,6 +523,20 @@ def _local_index(index: Tensor, count: int) -> Tensor:
 # The three paths
 
 
+def _describe_slot(k: int, data: PointMapData) -> str:
+    """The variable of entry k of the reduced system: a pose, or a parameter block."""
+    slot = k // 6
+    if slot < data.num_poses or data.parameters is None:
+        return f"pose {slot}"
+    layout = data.parameters
+    for g, name in enumerate(layout.names):
+        per = layout.slots_per_block(g)
+        start = data.num_poses + layout.offsets[g]
+        if slot < start + layout.counts[g] * per:
+            return f"parameter block {name}[{(slot - start) // per}]"
+    return f"slot {slot}"
+
+
 def _full(factorization, data: PointMapData, selection, tolerance: float):
     """The "dense" method: blocks of H⁻¹ from the Cholesky factor of the whole system."""
     pose_index, point_index, pair_index = selection
@@ -545,13 +559,13 @@ def _dense(plan: LinearPlan, factorization, lin, data: PointMapData, selection, 
     Σ_XX = V⁻¹ + V⁻¹ (Wᵀ S⁻¹ W) V⁻¹ with W (6m × 3c) per chunk of c selected points."""
     pose_index, point_index, pair_index = selection
     B, m, n = factorization.shape
-    L = factorization.factor.L
+    factor = factorization.factor
     ok, reasons = _dense_status(
-        factorization.factor.ok, _cholesky_ratios(L), tolerance, lambda k: f"pose {k // 6}"
+        factor.ok, factor.pivot_ratios(), tolerance, lambda k: _describe_slot(k, data)
     )
     point_ok, point_reasons = _point_status(lin, data, tolerance)
     ok, reasons = _combine(ok, reasons, point_ok, point_reasons)
-    sigma = torch.cholesky_inverse(L)  # (B, 6m, 6m)
+    sigma = factor.inverse()  # (B, 6m, 6m)
     blocks = sigma.reshape(B, m, 6, m, 6).transpose(2, 3)
     poses = blocks[:, pose_index, pose_index]
     pairs = blocks[:, pair_index[:, 0], pair_index[:, 1]]

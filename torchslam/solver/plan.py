@@ -369,6 +369,19 @@ class InstancePairs:
         return dense.reshape(B, size, size)[:, : size - 1, : size - 1]
 
 
+def _active_entries(data: PointMapData) -> Tensor | None:
+    """The entries of the reduced system that are not inert, long (N',), or None when all
+    are (no parameter block has a padded slot)."""
+    layout = data.parameters
+    if layout is None or bool(layout.active.all()):
+        return None
+    device = data.pose_index.device
+    active = torch.cat(
+        (torch.ones(6 * data.num_poses, dtype=torch.bool), layout.active.reshape(-1))
+    )
+    return active.nonzero()[:, 0].to(device)
+
+
 def _unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     """(unique rows in lexicographic order, inverse) of a long (R, c) tensor with entries
     ≥ 0: the rows ranked one column at a time (rank · (max + 1) + column, re-ranked by a 1-D
@@ -406,24 +419,58 @@ def _upper_term_pairs(data: PointMapData) -> tuple[Tensor, Tensor]:
 
 @dataclass
 class _DenseCholesky:
-    """Batched Cholesky of (B, N, N) SPD matrices; never raises on an indefinite one."""
+    """Batched Cholesky of (B, N, N) SPD matrices; never raises on an indefinite one.
+
+    With ``active`` (the indices of N' < N entries) only A's rows and columns there are
+    factored: the others are inert (an identity block, uncoupled: the entries of a parameter
+    block's last slot past its size, :mod:`torchslam.objective.parameters`), so that they cost
+    no flops; ``L`` is then the (B, N', N') factor of that part."""
 
     L: Tensor
     ok: Tensor
+    active: Tensor | None = None
+    size: int = 0
 
     @staticmethod
-    def of(A: Tensor) -> _DenseCholesky:
+    def of(A: Tensor, active: Tensor | None = None) -> _DenseCholesky:
+        size = A.shape[-1]
+        if active is not None:
+            A = A.index_select(-1, active).index_select(-2, active)
         L, info = torch.linalg.cholesky_ex(A)
         ok = info == 0
         if not bool(ok.all()):  # rare: swap in I so the batched solve stays finite
             eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
             L = torch.where(ok[..., None, None], L, eye)
-        return _DenseCholesky(L, ok)
+        return _DenseCholesky(L, ok, active, size)
 
     def solve(self, b: Tensor) -> Tensor:
         """x with A x = b, (B, N) → (B, N); zeros where the factorization failed."""
-        x = torch.cholesky_solve(b[..., None], self.L)[..., 0]
+        if self.active is None:
+            x = torch.cholesky_solve(b[..., None], self.L)[..., 0]
+        else:  # the inert entries solve I x = b
+            part = torch.cholesky_solve(b.index_select(-1, self.active)[..., None], self.L)
+            x = b.index_copy(-1, self.active, part[..., 0])
         return torch.where(self.ok[..., None], x, 0.0)
+
+    def inverse(self) -> Tensor:
+        """A⁻¹ (B, N, N) (the identity on the inert entries)."""
+        inverse = torch.cholesky_inverse(self.L)
+        if self.active is None:
+            return inverse
+        B = inverse.shape[0]
+        full = torch.eye(self.size, dtype=inverse.dtype, device=inverse.device).repeat(B, 1, 1)
+        idx = self.active
+        batch = torch.arange(B, device=idx.device)[:, None, None]
+        return full.index_put((batch, idx[None, :, None], idx[None, None, :]), inverse)
+
+    def pivot_ratios(self) -> Tensor:
+        """L_kk² / A_kk per entry, (B, N) (1 on the inert entries): the rank test's."""
+        d = torch.diagonal(self.L, dim1=-2, dim2=-1).square()
+        ratios = d / self.L.square().sum(-1)
+        if self.active is None:
+            return ratios
+        full = ratios.new_ones(ratios.shape[0], self.size)
+        return full.index_copy(-1, self.active, ratios)
 
 
 @dataclass
@@ -436,6 +483,9 @@ class DenseReduced:
 
     batch_size: int
     num_poses: int
+    # The entries of S that are not inert (parameter blocks' padding), long (N',), or None:
+    # only those are factored (:class:`_DenseCholesky`).
+    active: Tensor | None = None
 
     @property
     def num_slots(self) -> int:
@@ -469,7 +519,7 @@ class DenseReduced:
     ) -> _DenseCholesky:
         """Factor S = :meth:`matrix` (``upper``, ``dense`` (B, 6m, 6m)); Cholesky reports a
         failure at no extra cost, so ``definite`` is not needed."""
-        return _DenseCholesky.of(self.matrix(upper, dense))
+        return _DenseCholesky.of(self.matrix(upper, dense), self.active)
 
 
 @dataclass
@@ -678,7 +728,7 @@ class LinearPlan:
             reduced = SparseReduced.build(torch.cat((pairs.key, term_keys)), B, m, config.ordering)
             pair_slots = reduced.slots(pairs.key)
         else:
-            reduced = DenseReduced(B, m)
+            reduced = DenseReduced(B, m, _active_entries(data))
             pair_slots = None
         plan = LinearPlan(
             "schur",
@@ -844,7 +894,7 @@ class LinearPlan:
         (B·m·m, 6, 6) slot buffer)."""
         if self._has_term_pairs(lin):
             return self.reduced.factor(self._upper(U, lin), points_part)
-        return _DenseCholesky.of(DenseReduced.add_diagonal(points_part, U))
+        return _DenseCholesky.of(DenseReduced.add_diagonal(points_part, U), self.reduced.active)
 
     def _kept(self, name: str, compute):
         """``compute()`` made once per plan, kept under ``name`` (normal tensors even when
