@@ -71,7 +71,7 @@ from torchslam.objective.terms import (
     terms_cost,
 )
 from torchslam.objective.whitening import whiten, whitening
-from torchslam.solver.segments import segment_sum
+from torchslam.solver.segments import pieces, segment_sum, unique_rows
 
 __all__ = [
     "BlockLinearization",
@@ -591,15 +591,13 @@ def term_grouping(term: Term) -> TermGrouping | None:
 
 
 def _grouping(term: Term) -> TermGrouping | None:
-    from torchslam.solver.plan import _unique_rows  # planning helper (one place)
-
     slots = term.slot_index
     B, K, a = slots.shape
     if a == 0 or B * K < GROUPING_RATIO:
         return None
     device = slots.device
     batch = torch.arange(B, device=device)[:, None, None].expand(B, K, 1)
-    unique, inverse = _unique_rows(torch.cat((batch, slots), -1).reshape(B * K, 1 + a))
+    unique, inverse = unique_rows(torch.cat((batch, slots), -1).reshape(B * K, 1 + a))
     count = unique.shape[0]
     if count * GROUPING_RATIO > B * K:
         return None
@@ -610,17 +608,7 @@ def _grouping(term: Term) -> TermGrouping | None:
     table = torch.zeros(B * U, a, dtype=torch.long, device=device)
     table = table.index_copy(0, flat, unique[:, 1:]).reshape(B, U, a)
     signature = flat[inverse]
-    order = torch.argsort(signature, stable=True)
-    counts = torch.bincount(signature, minlength=B * U)
-    pieces = (counts + PIECE - 1) // PIECE
-    piece_start = torch.cumsum(pieces, 0) - pieces
-    sig_sorted = signature[order]
-    position = torch.arange(B * K, device=device) - (torch.cumsum(counts, 0) - counts)[sig_sorted]
-    piece = piece_start[sig_sorted] + position // PIECE
-    Q = int(pieces.sum())
-    rows = torch.full((Q, PIECE), B * K, dtype=torch.long, device=device)
-    rows[piece, position % PIECE] = order
-    piece_signature = torch.repeat_interleave(torch.arange(B * U, device=device), pieces)
+    rows, piece_signature = pieces(signature, B * U, PIECE, B * K)
     return TermGrouping(table, signature, rows, piece_signature)
 
 
@@ -683,12 +671,8 @@ class TermAccumulator:
         blocks of poses i and j of every instance, (B, K, 6, 6) each (indexable as an
         (a, a, B, K, 6, 6) tensor), and for a term with a point its block (B, K, 3, 3) and its
         couplings (B, K, 6a, 3)."""
-        B, m, n = self.B, self.m, self.n
-        K, a = term.slot_index.shape[1:]
-        P = 6 * a
-        slots = self.batch[..., None] * m + term.slot_index  # (B, K, a)
-        self.cost = self.cost + cost
-        self.gradient.index_add_(0, slots.reshape(-1), gradient[..., :P].reshape(-1, 6))
+        self.add_point_part(term, cost, gradient, point_block, coupling)
+        B, a = self.B, term.slot_arity
         grouping = term_grouping(term)
         if grouping is not None:  # the blocks summed per signature
             U = grouping.slots.shape[1]
@@ -702,17 +686,13 @@ class TermAccumulator:
                 for i in range(a)
             ]
             self.add_blocks(term, summed)
-        else:
-            for i in range(a):
-                self.diagonal.index_add_(
-                    0, slots[..., i].reshape(-1), pose_blocks[i][i].reshape(-1, 6, 6)
-                )
-            self.pairs.extend(pose_blocks[i][j] for i in range(a) for j in range(a) if i != j)
-        if term.has_point:
-            point_slots = (self.batch * n + term.point_index).reshape(-1)
-            self.point_gradient.index_add_(0, point_slots, gradient[..., P:].reshape(-1, 3))
-            self.point_diagonal.index_add_(0, point_slots, point_block.reshape(-1, 3, 3))
-            self.couplings.append(coupling.reshape(B, K * a, 6, 3))
+            return
+        slots = self.batch[..., None] * self.m + term.slot_index  # (B, K, a)
+        for i in range(a):
+            self.diagonal.index_add_(
+                0, slots[..., i].reshape(-1), pose_blocks[i][i].reshape(-1, 6, 6)
+            )
+        self.pairs.extend(pose_blocks[i][j] for i in range(a) for j in range(a) if i != j)
 
     def add_point_part(
         self,
@@ -722,7 +702,7 @@ class TermAccumulator:
         point_block: Tensor | None,
         coupling: Tensor | None,
     ) -> None:
-        """:meth:`add` without the slot blocks (a grouped term adds them by
+        """The share of :meth:`add` that is not the slot blocks (a grouped term adds those by
         :meth:`add_blocks`): cost, gradient, and for a point term its point blocks and
         couplings."""
         B, m, n = self.B, self.m, self.n

@@ -62,7 +62,7 @@ from torchslam.solver.linearize import (
     point_terms,
     term_pair_keys,
 )
-from torchslam.solver.segments import segment_sum
+from torchslam.solver.segments import pieces, segment_sum, unique_rows
 from torchslam.solver.sparse import BlockPattern, SparseFactor, factorization_work
 
 __all__ = [
@@ -253,7 +253,7 @@ class InstancePairs:
         # Signatures: (batch, columns) of each instance.
         b_of = point // max(n, 1)
         sig_key = torch.cat((b_of[:, None], cols), 1)
-        signatures, sig = _unique_rows(sig_key)
+        signatures, sig = unique_rows(sig_key)
         # Instances numbered by (signature, point): the pairs of a piece (one signature pair,
         # in point order) then read nearly consecutive rows.
         order = torch.from_numpy(np.lexsort((point.cpu().numpy(), sig.cpu().numpy())))
@@ -292,21 +292,10 @@ class InstancePairs:
         # products count ½: mirrored below) in pieces of their own.
         count = rows.shape[0]
         group = 2 * pair_slot + (first == second)
-        by_slot = torch.argsort(group, stable=True)
-        slot_sorted = group[by_slot]
-        counts = torch.bincount(slot_sorted, minlength=2 * P_sig)
-        pieces = (counts + PIECE - 1) // PIECE
-        piece_start = torch.cumsum(pieces, 0) - pieces
-        pair_start = torch.cumsum(counts, 0) - counts
-        q = torch.arange(by_slot.numel(), device=device) - pair_start[slot_sorted]
-        piece = piece_start[slot_sorted] + q // PIECE
-        lane = q % PIECE
-        Q = int(pieces.sum())
-        piece_first = torch.full((Q, PIECE), count, dtype=torch.long, device=device)
-        piece_second = torch.full((Q, PIECE), count, dtype=torch.long, device=device)
-        piece_first[piece, lane] = first[by_slot]
-        piece_second[piece, lane] = second[by_slot]
-        piece_group = torch.repeat_interleave(torch.arange(2 * P_sig, device=device), pieces)
+        pairs_of, piece_group = pieces(group, 2 * P_sig, PIECE, -1)
+        padding = pairs_of < 0
+        piece_first = torch.where(padding, count, first[pairs_of.clamp_min(0)])
+        piece_second = torch.where(padding, count, second[pairs_of.clamp_min(0)])
         piece_slot, piece_half = piece_group // 2, piece_group % 2 == 1
         padded = bool((rows == zero_row).any())
         return InstancePairs(
@@ -380,22 +369,6 @@ def _active_entries(data: PointMapData) -> Tensor | None:
         (torch.ones(6 * data.num_poses, dtype=torch.bool), layout.active.reshape(-1))
     )
     return active.nonzero()[:, 0].to(device)
-
-
-def _unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
-    """(unique rows in lexicographic order, inverse) of a long (R, c) tensor with entries
-    ≥ 0: the rows ranked one column at a time (rank · (max + 1) + column, re-ranked by a 1-D
-    ``torch.unique``), which stays below R·(max + 1) (no overflow), c sorts of R keys;
-    planning only (``torch.unique(dim=0)`` compares rows one at a time)."""
-    rank = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
-    if x.shape[0] == 0:
-        return x, rank
-    for column in x.unbind(1):
-        _, rank = torch.unique(rank * (int(column.max()) + 1) + column, return_inverse=True)
-    count = int(rank.max()) + 1 if rank.numel() else 0
-    first = torch.full((count,), x.shape[0], dtype=torch.long, device=x.device)
-    first = first.scatter_reduce(0, rank, torch.arange(x.shape[0], device=x.device), "amin")
-    return x[first], rank
 
 
 def _diagonal_keys(B: int, m: int, device: torch.device) -> Tensor:

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from torchslam import _inference
 
-__all__ = ["SPARSE_MIN_EDGES", "segment_sum"]
+__all__ = ["SPARSE_MIN_EDGES", "pieces", "segment_sum", "unique_rows"]
 
 # Below this many edges index_add_ is as fast (the sparse product's fixed cost dominates).
 SPARSE_MIN_EDGES = 4096
@@ -101,3 +101,44 @@ def _ones_matrix(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
             size=(rows, flat.numel()),
             check_invariants=False,
         )
+
+
+# ------------------------------------------------------------------------------------------
+# Planning helpers of the grouped products (.plan.InstancePairs, .linearize.TermGrouping)
+
+
+def unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
+    """(unique rows in lexicographic order, inverse) of a long (R, c) tensor with entries
+    ≥ 0: the rows ranked one column at a time (rank · (max + 1) + column, re-ranked by a 1-D
+    ``torch.unique``), which stays below R·(max + 1) (no overflow), c sorts of R keys;
+    planning only (``torch.unique(dim=0)`` compares rows one at a time)."""
+    rank = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+    if x.shape[0] == 0:
+        return x, rank
+    for column in x.unbind(1):
+        _, rank = torch.unique(rank * (int(column.max()) + 1) + column, return_inverse=True)
+    count = int(rank.max()) + 1
+    first = torch.full((count,), x.shape[0], dtype=torch.long, device=x.device)
+    first = first.scatter_reduce(0, rank, torch.arange(x.shape[0], device=x.device), "amin")
+    return x[first], rank
+
+
+def pieces(group: Tensor, num_groups: int, size: int, fill: int) -> tuple[Tensor, Tensor]:
+    """Cut the items of each group into pieces of ``size`` (the last one padded): (items
+    (Q, size), the item indices in group order, ``fill`` on the padding; group (Q,) of each
+    piece), for ``group`` (N,) long in [0, num_groups). Within a piece the items keep their
+    order (a stable sort)."""
+    device = group.device
+    order = torch.argsort(group, stable=True)
+    sorted_group = group[order]
+    counts = torch.bincount(sorted_group, minlength=num_groups)
+    per_group = (counts + size - 1) // size
+    first_piece = torch.cumsum(per_group, 0) - per_group
+    position = (
+        torch.arange(group.numel(), device=device)
+        - (torch.cumsum(counts, 0) - counts)[sorted_group]
+    )
+    piece = first_piece[sorted_group] + position // size
+    items = torch.full((int(per_group.sum()), size), fill, dtype=torch.long, device=device)
+    items[piece, position % size] = order
+    return items, torch.repeat_interleave(torch.arange(num_groups, device=device), per_group)
