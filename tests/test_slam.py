@@ -224,3 +224,59 @@ def test_depth_sequence_runs_from_a_folder(tmp_path):
     result = run_sequence(folder, config)
     assert result.num_frames == 2
     assert float(result.poses[1, :3, 3].norm()) < 1e-6
+
+
+def test_turned_starts_are_right_perturbations():
+    from torchslam.lie import so3
+    from torchslam.slam.odometry import turned_starts
+
+    T = se3.exp(torch.tensor([0.3, -0.2, 0.9, 1.0, 2.0, -3.0], dtype=torch.float64))
+    starts = turned_starts(T, 5.0)
+    assert starts.shape == (6, 4, 4)
+    angle = np.radians(5.0)
+    for k in range(6):
+        omega = torch.zeros(3, dtype=torch.float64)
+        omega[k // 2] = angle if k % 2 else -angle
+        expected = se3.compose(T, se3.from_rotation_translation(so3.exp(omega), omega.new_zeros(3)))
+        # products of a few unit-norm 4×4 matrices: round-off of a few ulp
+        torch.testing.assert_close(starts[k], expected, rtol=0, atol=1e-14)
+
+
+def test_screening_recovers_an_alignment_in_a_wrong_basin(sequence):
+    # The mechanism of odometry step 4 on its own: a main alignment slid 0.6 m (2.4 voxels)
+    # along the trajectory, as the wide gate does on hand-held keyframes, must be replaced by
+    # a start that converges to the right pose; a right main alignment must be kept.
+    odometry = Odometry(SLAMConfig.for_sensor("lidar"))
+    for cloud in sequence.clouds[:6]:
+        odometry.add(cloud)
+    truth = se3.compose(se3.inverse(sequence.poses[0]), sequence.poses[6])
+    _, source = odometry._preprocess(sequence.clouds[6].to(torch.float64))
+    slid = truth.clone()
+    slid[:3, 3] += 0.6 * torch.nn.functional.normalize(truth[:3, 3] - odometry._last[:3, 3], dim=0)
+    prediction = se3.compose(
+        truth, se3.exp(torch.tensor([0.0, 0.0, 0.05, 0.1, 0.0, 0.0], dtype=torch.float64))
+    )
+    pose, start, passes = odometry._screen(source, prediction, slid)
+    assert start >= 1 and passes > 0
+    # the refined start is as good as a normal odometry step (test above: < 0.1 m)
+    assert float((pose[:3, 3] - truth[:3, 3]).norm()) < 0.1
+    kept, start, _ = odometry._screen(source, prediction, pose)
+    assert start == 0 and torch.equal(kept, pose)
+
+
+def test_screening_options_are_checked():
+    assert SLAMConfig.for_sensor("depth").start_rotation_deg == 0.0  # off for 30 Hz depth
+    assert SLAMConfig.for_sensor("lidar").start_rotation_deg > 0
+    for name, value in (
+        ("start_rotation_deg", -1.0),
+        ("start_rotation_deg", 120.0),
+        ("screen_points", 10),
+        ("screen_iterations", 0),
+        ("screen_voxels", 0.0),
+        ("screen_margin", 1.5),
+    ):
+        with pytest.raises(ValueError, match=f"SLAMConfig: argument '{name}'"):
+            SLAMConfig(**{name: value})
+    # with the screening off every pose comes from the main alignment
+    result = run_sequence(make_sequence(8, seed=1).clouds, SLAMConfig(start_rotation_deg=0.0))
+    assert all(f.start == 0 for f in result.frames)

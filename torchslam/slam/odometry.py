@@ -11,12 +11,23 @@ For each frame (points in the sensor frame):
    follows the observed motion: 3σ of the past prediction errors, each measured as the
    RMS displacement of the frame's points between the prediction and the estimate (the
    adaptive threshold of KISS-ICP, measured on the points instead of at a lever arm);
-4. the alignment is judged (:func:`torchslam.registration.quality.alignment_quality`:
+4. alternative starts (``start_rotation_deg`` > 0): the prediction, the last pose (zero
+   velocity) and the prediction turned by ±``start_rotation_deg`` about each sensor axis
+   are registered together (one batched ICP at the judging gate, on ``screen_points`` of
+   the frame, ``screen_iterations`` passes) and
+   scored, with the main alignment, by their tight overlap: the fraction of the sample with
+   a map point within ``screen_voxels`` voxels. When the best start beats the main alignment
+   by more than ``screen_margin``, it is refined on the whole frame and replaces the main
+   alignment if it still wins and is trusted (:attr:`FrameInfo.start` says which start won).
+   This catches the main ICP settling in a wrong basin when the prediction's rotation is off
+   by degrees (hand-held keyframes): a wide gate then lets the map's structure pull the frame
+   along a weakly constrained direction by a metre while overlap and RMS still look good;
+5. the alignment is judged (:func:`torchslam.registration.quality.alignment_quality`:
    overlap and residual RMS of the correspondences within 3 voxels, conditioning). An
    untrusted one is retried with a 3× wider gate from the prediction and from the last pose
    (zero velocity); when no attempt is trusted the frame
    is marked ``UNRELIABLE`` (its pose the best attempt's) and never becomes a keyframe;
-5. a frame becomes a keyframe when it moved more than ``keyframe_translation`` or turned
+6. a frame becomes a keyframe when it moved more than ``keyframe_translation`` or turned
    more than ``keyframe_rotation_deg`` since the last keyframe; keyframes enter the local map
    and the back end (:class:`torchslam.slam.SLAM`).
 
@@ -34,12 +45,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3, so3
 from torchslam.registration import icp as _icp
-from torchslam.registration.neighbors import _downsample, _normals
+from torchslam.registration.neighbors import _downsample, _normals, _query_host
 from torchslam.registration.quality import (
     AlignmentQuality,
     QualityThresholds,
@@ -90,6 +102,10 @@ class FrameInfo:
     dropped: int
     seconds: float
     problem: str | None = None
+    # which start gave the pose: 0 the main alignment (step 3), k ≥ 1 the k-th alternative
+    # start (step 4: 1 the prediction at the judging gate, 2 the last pose, then 3–8 the
+    # prediction turned by −δ, +δ about x, y, z)
+    start: int = 0
 
     @property
     def trusted(self) -> bool:
@@ -129,6 +145,28 @@ class _AdaptiveGate:
         if error > self.min_motion:
             self.sum_squares += error * error
             self.count += 1
+
+
+def turned_starts(T: Tensor, degrees: float) -> Tensor:
+    """T (4, 4) turned by ∓``degrees`` about each axis of its own frame, T·Exp((±θ e_a, 0)):
+    (6, 4, 4), in the order −x, +x, −y, +y, −z, +z."""
+    angle = math.radians(degrees)
+    turns = torch.zeros(6, 3, dtype=T.dtype)
+    for axis in range(3):
+        turns[2 * axis, axis], turns[2 * axis + 1, axis] = -angle, angle
+    turned = T.expand(6, 4, 4).clone()
+    turned[:, :3, :3] = T[:3, :3] @ so3.exp(turns)
+    return turned
+
+
+def tight_overlap(tree: cKDTree, sample: Tensor, transforms: Tensor, bound: float) -> Tensor:
+    """Fraction of the points ``sample`` (n, 3), moved by each of ``transforms`` (S, 4, 4),
+    with a point of ``tree`` within ``bound``: (S,). A tighter overlap than the judging
+    gate's, it tells the right basin from a neighbouring one whose RMS looks as good."""
+    T = transforms.numpy()
+    moved = np.einsum("sij,nj->sni", T[:, :3, :3], sample.numpy()) + T[:, None, :3, 3]
+    _, index = _query_host(tree, moved.reshape(-1, 3), bound)
+    return torch.from_numpy((index >= 0).reshape(len(T), -1).mean(1))
 
 
 def _angle_deg(T: Tensor) -> float:
@@ -257,7 +295,7 @@ class Odometry:
 
         gate = self._gate.value()
         with _checks.validation(False):
-            pose, quality, iterations, status = self._register(source, prediction, gate)
+            pose, quality, iterations, status, start = self._register(source, prediction, gate)
         # ICP composes its increments: re-orthonormalize so that round-off cannot accumulate.
         pose = se3.from_rotation_translation(so3.project(pose[:3, :3]), pose[:3, 3])
         if status != FrameStatus.UNRELIABLE:
@@ -265,6 +303,7 @@ class Odometry:
         info = FrameInfo(
             index, timestamp, pose, status, False, anchor, quality.fitness, quality.rms,
             quality.condition, gate, iterations, source.shape[0], dropped, 0.0, quality.problem,
+            start,
         )  # fmt: skip
         if status != FrameStatus.UNRELIABLE and self._moved_enough(pose):
             information = quality.information * (cfg.effective_points / max(quality.inliers, 1))
@@ -336,11 +375,15 @@ class Odometry:
             or _angle_deg(motion) > cfg.keyframe_rotation_deg
         )
 
-    def _icp(self, source: Tensor, initial: Tensor, gate: float) -> _icp.ICPResult:
+    def _icp(
+        self, source: Tensor, initial: Tensor, gate: float, iterations: int | None = None
+    ) -> _icp.ICPResult:
+        """Point-to-plane ICP of ``source`` against the map from ``initial`` (4, 4) or a
+        batch (S, 4, 4); a result per start."""
         cfg = self.config
         config = _icp.ICPConfig(
             method="point_to_plane",
-            max_iterations=cfg.icp_iterations,
+            max_iterations=cfg.icp_iterations if iterations is None else iterations,
             relative_tolerance=1e-6,
             max_distance=gate,
             gate_scale=None,
@@ -350,9 +393,9 @@ class Odometry:
             translation_tolerance=0.01 * cfg.voxel,
         )
         target, normals = self.map.state()
-        return _icp._run(
-            "Odometry.add", source, target, initial[None], config, normals, self.map.tree
-        )[0]
+        batch = initial if initial.dim() == 3 else initial[None]
+        result = _icp._run("Odometry.add", source, target, batch, config, normals, self.map.tree)
+        return result if initial.dim() == 3 else result[0]
 
     def _judge(self, source: Tensor, T: Tensor) -> AlignmentQuality:
         target, normals = self.map.state()
@@ -361,9 +404,47 @@ class Odometry:
             noise_floor=0.1 * self.config.voxel, tree=self.map.tree,
         )  # fmt: skip
 
+    @staticmethod
+    def _sample(source: Tensor, count: int) -> Tensor:
+        """An evenly spread subset of ``count`` rows of ``source`` (all when fewer), the same
+        for the same input (a generator seeded by the size: runs repeat exactly)."""
+        if source.shape[0] <= count:
+            return source
+        generator = torch.Generator().manual_seed(source.shape[0])
+        pick = torch.randperm(source.shape[0], generator=generator)[:count]
+        return source[pick.sort().values]
+
+    def _starts(self, prediction: Tensor) -> Tensor:
+        """The alternative starts (module docstring, step 4), (8, 4, 4)."""
+        assert self._last is not None
+        turned = turned_starts(prediction, self.config.start_rotation_deg)
+        return torch.cat((prediction[None], self._last[None], turned))
+
+    def _screen(
+        self, source: Tensor, prediction: Tensor, transform: Tensor
+    ) -> tuple[Tensor, int, int]:
+        """Step 4 of the module docstring: (the pose, its start, the extra ICP passes)."""
+        cfg = self.config
+        fine = JUDGE_VOXELS * cfg.voxel
+        sample = self._sample(source, cfg.screen_points)
+        starts = self._icp(sample, self._starts(prediction), fine, cfg.screen_iterations)
+        bound = cfg.screen_voxels * cfg.voxel
+        candidates = torch.cat((transform[None], starts.transform))
+        scores = tight_overlap(self.map.tree, sample, candidates, bound)
+        best = int(scores[1:].argmax())
+        passes = int(starts.iterations.sum())
+        if float(scores[best + 1]) <= float(scores[0]) + cfg.screen_margin:
+            return transform, 0, passes
+        refined = self._icp(source, starts.transform[best], fine)
+        passes += int(refined.iterations)
+        score = float(tight_overlap(self.map.tree, sample, refined.transform[None], bound)[0])
+        if score <= float(scores[0]) + cfg.screen_margin:
+            return transform, 0, passes
+        return refined.transform, best + 1, passes
+
     def _register(
         self, source: Tensor, prediction: Tensor, gate: float
-    ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus]:
+    ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus, int]:
         result = self._icp(source, prediction, gate)
         iterations = int(result.iterations)
         fine = JUDGE_VOXELS * self.config.voxel
@@ -372,22 +453,31 @@ class Odometry:
             # with the gate the alignment is judged with.
             result = self._icp(source, result.transform, fine)
             iterations += int(result.iterations)
-        quality = self._judge(source, result.transform)
+        transform, start = result.transform, 0
+        if self.config.start_rotation_deg > 0:
+            screened, start, passes = self._screen(source, prediction, transform)
+            iterations += passes
+            if start:
+                quality = self._judge(source, screened)
+                if quality.trusted:
+                    return screened, quality, iterations, FrameStatus.TRACKED, start
+                start = 0
+        quality = self._judge(source, transform)
         if quality.trusted:
-            return result.transform, quality, iterations, FrameStatus.TRACKED
+            return transform, quality, iterations, FrameStatus.TRACKED, start
         assert self._last is not None
-        attempts = [(result.transform, quality, int(result.iterations))]
+        attempts = [(transform, quality, int(result.iterations))]
         wide = 3.0 * gate
-        for start in (prediction, self._last):
-            coarse = self._icp(source, start, wide)
+        for initial in (prediction, self._last):
+            coarse = self._icp(source, initial, wide)
             refined = self._icp(source, coarse.transform, gate)
             q = self._judge(source, refined.transform)
             steps = int(coarse.iterations) + int(refined.iterations)
             attempts.append((refined.transform, q, steps))
             if q.trusted:
-                return refined.transform, q, steps, FrameStatus.RETRIED
+                return refined.transform, q, steps, FrameStatus.RETRIED, 0
         best = max(attempts, key=lambda a: (a[1].fitness, -a[1].rms))
-        return best[0], best[1], best[2], FrameStatus.UNRELIABLE
+        return best[0], best[1], best[2], FrameStatus.UNRELIABLE, 0
 
     def _make_keyframe(self, info: FrameInfo, source: Tensor, information: Tensor) -> None:
         cfg = self.config
