@@ -231,6 +231,8 @@ def test_turned_starts_are_right_perturbations():
     from torchslam.slam.odometry import turned_starts
 
     T = se3.exp(torch.tensor([0.3, -0.2, 0.9, 1.0, 2.0, -3.0], dtype=torch.float64))
+    assert turned_starts(T, 5.0, "z").shape == (2, 4, 4)
+    torch.testing.assert_close(turned_starts(T, 5.0, "z"), turned_starts(T, 5.0)[4:])
     starts = turned_starts(T, 5.0)
     assert starts.shape == (6, 4, 4)
     angle = np.radians(5.0)
@@ -274,6 +276,9 @@ def test_screening_options_are_checked():
         ("screen_iterations", 0),
         ("screen_voxels", 0.0),
         ("screen_margin", 1.5),
+        ("start_axes", ""),
+        ("start_axes", "zz"),
+        ("start_axes", "w"),
     ):
         with pytest.raises(ValueError, match=f"SLAMConfig: argument '{name}'"):
             SLAMConfig(**{name: value})

@@ -54,10 +54,13 @@ class SLAMConfig:
     # iteration cap and the step tolerances of the ICP
     icp_iterations: int = 30
     # alternative starts (odometry's module docstring, step 4): the prediction turned by
-    # ± start_rotation_deg about each sensor axis, and the last pose, screened against the
-    # main alignment; 0 disables them. Hand-held LiDAR keyframes are often mispredicted by
-    # several degrees, where the main ICP can settle in a wrong basin.
+    # ± start_rotation_deg about each of the sensor axes start_axes (a string of "x", "y",
+    # "z"), and the last pose, screened against the main alignment; 0 disables them.
+    # Hand-held LiDAR keyframes are often mispredicted by several degrees, mostly in yaw
+    # (about the sensor's z, up for a LiDAR held or mounted level), where the main ICP can
+    # settle in a wrong basin.
     start_rotation_deg: float = 5.0
+    start_axes: str = "z"
     # the screening: ICP of every start on screen_points of the frame, screen_iterations each
     screen_points: int = 500
     screen_iterations: int = 6
@@ -157,6 +160,17 @@ class SLAMConfig:
         ):
             _checks.check_real(fn, name, getattr(self, name), low=0.0)
         _checks.check_real(fn, "start_rotation_deg", self.start_rotation_deg, low=0.0, high=90.0)
+        axes = self.start_axes
+        if (
+            not isinstance(axes, str)
+            or not axes
+            or set(axes) - set("xyz")
+            or len(set(axes)) != len(axes)
+        ):
+            raise ValueError(
+                f"{fn}: argument 'start_axes' must be a non-empty string of distinct axes "
+                f"among 'x', 'y', 'z' (e.g. 'z' or 'xyz'), got {axes!r}"
+            )
         for name in ("min_fitness", "min_condition", "loop_min_fitness", "screen_margin"):
             _checks.check_real(fn, name, getattr(self, name), low=0.0, high=1.0)
         if self.min_range >= self.max_range:

@@ -13,6 +13,7 @@ For each frame (points in the sensor frame):
    adaptive threshold of KISS-ICP, measured on the points instead of at a lever arm);
 4. alternative starts (``start_rotation_deg`` > 0): the prediction, the last pose (zero
    velocity) and the prediction turned by ±``start_rotation_deg`` about each sensor axis
+   of ``start_axes``
    are registered together (one batched ICP at the judging gate, on ``screen_points`` of
    the frame, ``screen_iterations`` passes) and
    scored, with the main alignment, by their tight overlap: the fraction of the sample with
@@ -103,8 +104,8 @@ class FrameInfo:
     seconds: float
     problem: str | None = None
     # which start gave the pose: 0 the main alignment (step 3), k ≥ 1 the k-th alternative
-    # start (step 4: 1 the prediction at the judging gate, 2 the last pose, then 3–8 the
-    # prediction turned by −δ, +δ about x, y, z)
+    # start (step 4: 1 the prediction at the judging gate, 2 the last pose, then 3, 4 the
+    # prediction turned by −δ, +δ about the first axis of start_axes, 5, 6 about the second…)
     start: int = 0
 
     @property
@@ -147,14 +148,15 @@ class _AdaptiveGate:
             self.count += 1
 
 
-def turned_starts(T: Tensor, degrees: float) -> Tensor:
-    """T (4, 4) turned by ∓``degrees`` about each axis of its own frame, T·Exp((±θ e_a, 0)):
-    (6, 4, 4), in the order −x, +x, −y, +y, −z, +z."""
+def turned_starts(T: Tensor, degrees: float, axes: str = "xyz") -> Tensor:
+    """T (4, 4) turned by ∓``degrees`` about each of ``axes`` ("x", "y", "z": the axes of its
+    own frame), T·Exp((±θ e_a, 0)): (2·len(axes), 4, 4), in the order −a, +a of each axis."""
     angle = math.radians(degrees)
-    turns = torch.zeros(6, 3, dtype=T.dtype)
-    for axis in range(3):
-        turns[2 * axis, axis], turns[2 * axis + 1, axis] = -angle, angle
-    turned = T.expand(6, 4, 4).clone()
+    turns = torch.zeros(2 * len(axes), 3, dtype=T.dtype)
+    for k, name in enumerate(axes):
+        axis = "xyz".index(name)
+        turns[2 * k, axis], turns[2 * k + 1, axis] = -angle, angle
+    turned = T.expand(len(turns), 4, 4).clone()
     turned[:, :3, :3] = T[:3, :3] @ so3.exp(turns)
     return turned
 
@@ -415,9 +417,10 @@ class Odometry:
         return source[pick.sort().values]
 
     def _starts(self, prediction: Tensor) -> Tensor:
-        """The alternative starts (module docstring, step 4), (8, 4, 4)."""
+        """The alternative starts (module docstring, step 4), (2 + 2·len(start_axes), 4, 4)."""
         assert self._last is not None
-        turned = turned_starts(prediction, self.config.start_rotation_deg)
+        cfg = self.config
+        turned = turned_starts(prediction, cfg.start_rotation_deg, cfg.start_axes)
         return torch.cat((prediction[None], self._last[None], turned))
 
     def _screen(
