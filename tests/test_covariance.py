@@ -210,7 +210,7 @@ def test_a_batch_equals_its_problems_alone():
     together = ts.marginal_covariances(problem, pairs=[(1, 3)])
     for b in range(3):
         alone = ts.PointMapProblem(
-            problem.poses()[b : b + 1].detach(),
+            problem.poses[b : b + 1].detach(),
             problem.points[b : b + 1].detach(),
             problem.data.pose_index[b : b + 1],
             problem.data.point_index[b : b + 1],

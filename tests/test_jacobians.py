@@ -169,7 +169,7 @@ def _magnitude(problem: PointMapProblem) -> Tensor:
     """M_e = 1 + |X_j| + |t_i| + |X_ij| per observation (B, E): the size of what the
     residual adds up, which sets the round-off of a central difference."""
     data = problem.data
-    T = problem.poses().detach()
+    T = problem.poses.detach()
     X = problem.points.detach()
     b = torch.arange(T.shape[0])[:, None]
     X_e = X[b, data.point_index]
@@ -277,7 +277,7 @@ def test_first_order_expansion_on_the_manifold(generator):
         X_e = data_module.gather_points(problem.points.detach(), data)
         linear = (J_xi @ delta_e[..., None] + J_point @ dX_e[..., None])[..., 0]
         with torch.no_grad():
-            problem.pose_tangent.copy_(se3.log(problem.poses() @ se3.exp(delta)))
+            problem.pose_tangent.copy_(se3.log(problem.poses @ se3.exp(delta)))
             problem.points.add_(dX)
         r1 = problem.raw_residuals().detach()
         remainder = (r1 - r0 - linear).norm(dim=-1)
@@ -326,7 +326,7 @@ def _whitened_residual_function(problem: PointMapProblem):
     whitening: δ stacks, per problem b, (δξ_0, …, δξ_{m−1}, δX_0, …, δX_{n−1}), poses perturbed
     T_i0 · Exp(δξ_i), points X_j + δX_j; output (B · 3E,), input (B · (6m + 3n),)."""
     data = problem.data
-    T = problem.poses().detach()
+    T = problem.poses.detach()
     X = problem.points.detach()
     B, m, n = problem.batch_size, problem.num_poses, problem.num_points
     b = torch.arange(B)[:, None]

@@ -50,7 +50,7 @@ def _gauge_fixed(problem_bal, intrinsics="free", **kwargs):
     fixed_points = torch.zeros(1, N, dtype=torch.bool)
     fixed_points[0, 0] = True
     return torchslam.PointMapProblem(
-        p.poses().detach(),
+        p.poses.detach(),
         p.points.detach(),
         torch.zeros(1, 0, dtype=torch.long),
         torch.zeros(1, 0, dtype=torch.long),
@@ -288,7 +288,7 @@ def _dense_hessian(problem):
     w.r.t. (δ poses (right), δ points, δ intrinsics), by brute force."""
     data = problem.data
     term = data.terms[0]
-    T0 = problem.poses().detach()[0]
+    T0 = problem.poses.detach()[0]
     X0 = problem.points.detach()[0]
     c0 = problem.parameter_blocks["intrinsics"].detach()[0]
     C, N, q = T0.shape[0], X0.shape[0], c0.shape[0]

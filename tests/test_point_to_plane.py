@@ -103,7 +103,7 @@ def test_noise_free_solve_recovers_the_ground_truth():
         result = solve(problem, config)
         assert result.converged == [True], result.summary()
         assert float(result.final_cost[0]) <= 1e-16 * float(result.initial_cost[0])
-        torch.testing.assert_close(problem.poses().detach(), scene.poses_gt, rtol=0, atol=1e-10)
+        torch.testing.assert_close(problem.poses.detach(), scene.poses_gt, rtol=0, atol=1e-10)
         torch.testing.assert_close(problem.points.detach(), scene.points_gt, rtol=0, atol=1e-10)
 
 

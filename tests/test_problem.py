@@ -460,7 +460,7 @@ def test_from_scene_with_given_initialization_and_loss():
     poses = scene.poses_gt @ se3.exp(torch.full((1, 5, 6), 0.01, dtype=F64))
     points = scene.points_gt + 0.1
     problem = PointMapProblem.from_scene(scene, poses, points, loss=HuberLoss(0.02))
-    torch.testing.assert_close(problem.poses(), poses, atol=1e-13, rtol=0)
+    torch.testing.assert_close(problem.poses, poses, atol=1e-13, rtol=0)
     torch.testing.assert_close(problem.points.detach(), points)
     assert isinstance(problem.data.loss, HuberLoss)
     assert float(problem.cost().detach()) > float(PointMapProblem.from_scene(scene).cost().detach())
@@ -788,7 +788,7 @@ def test_module_stores_log_of_the_poses_and_copies_its_inputs():
     torch.testing.assert_close(
         xi[0, 1, :3], torch.tensor([0, 0, math.pi / 2], dtype=F64), atol=1e-15, rtol=0
     )
-    torch.testing.assert_close(problem.poses(), inputs["poses"], atol=1e-15, rtol=0)
+    torch.testing.assert_close(problem.poses, inputs["poses"], atol=1e-15, rtol=0)
     # The parameters are copies: changing them leaves the caller's tensors alone.
     with torch.no_grad():
         problem.points.add_(1.0)
@@ -890,3 +890,27 @@ def test_numpy_arrays_are_accepted_as_tensors():
         data.point_index.numpy(), data.observations.numpy(), valid=data.valid.numpy(),
     )  # fmt: skip
     assert torch.equal(edges.cost(), tensors.cost())
+
+
+def test_poses_is_a_property_and_the_old_call_warns():
+    # problem.poses is a tensor, as SolveResult.poses is (issue 28 §4); the former method call
+    # keeps working for one release with a DeprecationWarning.
+    poses = se3.exp(
+        torch.randn(1, 3, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    )
+    poses[:, 0] = torch.eye(4, dtype=torch.float64)
+    with pytest.warns(UserWarning, match="held fixed"):  # 1 observation per pose: fine here
+        problem = PointMapProblem(
+            poses, torch.zeros(1, 2, 3, dtype=torch.float64), torch.tensor([[1, 2]]),
+            torch.tensor([[0, 1]]), torch.zeros(1, 2, 3, dtype=torch.float64),
+        )  # fmt: skip
+    value = problem.poses
+    assert isinstance(value, torch.Tensor) and value.shape == (1, 3, 4, 4)
+    # Exp(Log(T)) of a random rigid T: round-off of a few ulp
+    torch.testing.assert_close(value, poses, rtol=0, atol=1e-13)
+    assert type(value[0] @ value[0]) is torch.Tensor  # the shim does not spread
+    value.sum().backward()  # differentiable w.r.t. the tangent parameters
+    assert problem.pose_tangent.grad is not None
+    with pytest.warns(DeprecationWarning, match=r"PointMapProblem\.poses\(\) is deprecated"):
+        called = problem.poses()
+    assert type(called) is torch.Tensor and torch.equal(called, value)

@@ -384,7 +384,7 @@ def test_problem_cost_is_point_cost_plus_term_costs_and_broadcasts():
     batched = PosePriorTerm(torch.tensor([[2, 3], [3, 2]]), prior_Z)
     plain = _problem(scene, poses, points)
     with_terms = _problem(scene, poses, points, [shared, batched])
-    T = plain.poses().detach()
+    T = plain.poses.detach()
     expected = plain.cost().detach().clone()
     for b in range(2):
         r = _hand_relative_residuals(T[b], index, Z[0])
@@ -704,14 +704,14 @@ def test_robust_term_converges():
     _assert_stationary(problem, _mixed_problem(31, loss=HuberLoss(3.0), outlier=True), 1e-9)
     # The outlier is in Huber's linear regime at the solution, the others are not.
     odometry = problem.data.terms[0]
-    r = term_jacobians(odometry, term_poses(odometry, problem.poses().detach()))[0]
+    r = term_jacobians(odometry, term_poses(odometry, problem.poses.detach()))[0]
     s = (r[..., None, :] @ odometry.information @ r[..., None])[..., 0, 0]
     assert float(s[0, 1]) > 9.0 and float(s[0, [0, 2, 3]].max()) < 9.0
     # Least squares with the same outlier is pulled further from the ground truth.
     least_squares = _mixed_problem(31, outlier=True)
     solve(least_squares, SolverConfig(**TIGHT))
-    assert _pose_error(problem.poses().detach(), 31) < 0.7 * _pose_error(
-        least_squares.poses().detach(), 31
+    assert _pose_error(problem.poses.detach(), 31) < 0.7 * _pose_error(
+        least_squares.poses.detach(), 31
     )
 
 

@@ -5,6 +5,9 @@ module-level ``__getattr__`` to :func:`moved`, so that reading a moved name from
 object at its new home (the very same object) and emits a ``DeprecationWarning`` that names the
 new location. Importing a shim warns about nothing; reading a name does, at the caller's line.
 README.md lists the old and the new paths ("Deprecated names").
+
+:func:`callable_tensor` does the same for a method that became a property: the tensor it
+returns may still be called, once, with a warning.
 """
 
 from __future__ import annotations
@@ -13,7 +16,9 @@ import importlib
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 
-__all__ = ["moved"]
+import torch
+
+__all__ = ["callable_tensor", "moved"]
 
 
 def moved(old: str, new: str | Mapping[str, Sequence[str] | None]) -> Callable[[str], object]:
@@ -55,3 +60,28 @@ def moved(old: str, new: str | Mapping[str, Sequence[str] | None]) -> Callable[[
         return getattr(module, name)
 
     return __getattr__
+
+
+class _CallableTensor(torch.Tensor):
+    """A tensor that can still be called like the method it replaces (see callable_tensor).
+
+    Its ``__torch_function__`` is torch's disabled one: every operation on it returns a
+    plain tensor, so the subclass never spreads beyond the attribute read."""
+
+    __torch_function__ = torch._C._disabled_torch_function_impl
+    _deprecation: str
+
+    def __call__(self) -> torch.Tensor:
+        warnings.warn(self._deprecation, DeprecationWarning, stacklevel=2)
+        return self.as_subclass(torch.Tensor)
+
+
+def callable_tensor(value: torch.Tensor, owner: str, name: str) -> torch.Tensor:
+    """``value`` (autograd history kept) for the property ``owner.name`` that was a method:
+    calling it, ``owner.name()``, returns the plain tensor with a ``DeprecationWarning``."""
+    wrapped = value.as_subclass(_CallableTensor)
+    wrapped._deprecation = (
+        f"{owner}.{name}() is deprecated: {name} is a property now (a tensor, as "
+        f"SolveResult.{name} is); drop the parentheses (the call is removed in the next release)"
+    )
+    return wrapped

@@ -97,7 +97,7 @@ def bal_from_problem(problem: PointMapProblem, bal: BALProblem, index: int = 0) 
     """``bal`` with the cameras and points of problem ``index`` of ``problem`` (one built by
     :func:`problem_from_bal`): r = Log(R), t, (f, k1, k2), the points; same observations."""
     with torch.no_grad():
-        T = problem.poses()[index].to(bal.cameras.dtype)
+        T = problem.poses[index].to(bal.cameras.dtype)
         r = so3.log(T[:, :3, :3])
         cameras = torch.cat(
             (r, T[:, :3, 3], problem.parameter_blocks["intrinsics"][index].to(r.dtype)), -1

@@ -42,6 +42,7 @@ import torch
 from torch import Tensor, nn
 
 from torchslam import _checks, jacobians, losses
+from torchslam._deprecated import callable_tensor
 from torchslam._threads import threads_for_entries
 from torchslam.lie import se3
 from torchslam.objective import data as _data
@@ -344,9 +345,13 @@ class PointMapProblem(nn.Module):
     # ----------------------------------------------------------------------------------------
     # Residuals and cost
 
+    @property
     def poses(self) -> Tensor:
-        """Current poses T_i0 = Exp(ξ_i), shape (B, m, 4, 4)."""
-        return se3.exp(self.pose_tangent, form="fast")
+        """Current poses T_i0 = Exp(ξ_i), shape (B, m, 4, 4) (differentiable w.r.t. ξ).
+
+        A property, as :attr:`SolveResult.poses` is; the former call ``problem.poses``
+        still works for one release, with a ``DeprecationWarning``."""
+        return callable_tensor(se3.exp(self.pose_tangent, form="fast"), "PointMapProblem", "poses")
 
     def raw_residuals(self) -> Tensor:
         """r_e = X_ij − T_i0 X_j, (B, E, 3), zero on padding (differentiable w.r.t. all)."""

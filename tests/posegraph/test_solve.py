@@ -390,7 +390,7 @@ def test_graph_as_a_relative_pose_term_reaches_the_same_optimum(ring, reduced_so
     result = torchslam.solve(problem, config)
     assert result.converged
     assert float(result.final_cost[0]) == pytest.approx(reference.final_cost, rel=1e-10)
-    assert (se3.inverse(problem.poses()[0]) - reference.poses).abs().max() < 1e-8
+    assert (se3.inverse(problem.poses[0]) - reference.poses).abs().max() < 1e-8
 
 
 def test_default_start_is_the_chordal_relaxation_and_is_reported(ring):

@@ -262,7 +262,7 @@ def solution_distance(a: torchslam.PointMapProblem, c: torchslam.PointMapProblem
     :func:`solution_distance_bound`: δ_i = Log(T_i,a⁻¹ T_i,c) for the poses, X_c − X_a for
     the points (2-norm over all)."""
     with torch.no_grad():
-        delta = se3.log(se3.inverse(a.poses()[b]) @ c.poses()[b])
+        delta = se3.log(se3.inverse(a.poses[b]) @ c.poses[b])
         dX = c.points[b] - a.points[b]
     return float(torch.cat((delta.reshape(-1), dX.reshape(-1))).norm())
 

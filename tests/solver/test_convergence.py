@@ -213,8 +213,8 @@ def test_robust_losses_converge_to_a_stationary_point_and_reject_outliers(loss):
 
     plain = problem_from(scene, init.poses, init.points)
     torchslam.solve(plain, SolverConfig())
-    robust_error = evaluate(robust.poses().detach(), scene.poses_gt).mean_rotation_error_deg
-    plain_error = evaluate(plain.poses().detach(), scene.poses_gt).mean_rotation_error_deg
+    robust_error = evaluate(robust.poses.detach(), scene.poses_gt).mean_rotation_error_deg
+    plain_error = evaluate(plain.poses.detach(), scene.poses_gt).mean_rotation_error_deg
     assert plain_error > 1.0  # least squares is ruined by the outliers
     assert robust_error < 0.3
 

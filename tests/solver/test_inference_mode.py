@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import pytest
 import torch
 
 import torchslam
@@ -112,3 +113,26 @@ def test_the_callback_runs_outside_inference_mode():
     kept[0].add_(1.0)
     (w * kept[0]).sum().backward()
     assert w.grad is not None
+
+
+def test_backward_through_solve_points_to_solve_differentiable():
+    # Observations that require grad tell that the caller wants gradients of the solution:
+    # a backward through solve's result says to use solve_differentiable (issue 28 §4), where
+    # torch alone would say "does not require grad".
+    scene, init = drifted(5, 30)
+    weights = torch.ones(scene.valid.shape, dtype=torch.float64, requires_grad=True)
+    problem = problem_from(scene, init.poses, init.points, weights=weights)
+    result = torchslam.solve(problem)
+    for value in (result.poses, result.points, result.final_cost):
+        assert value.requires_grad
+        with pytest.raises(RuntimeError, match=r"solve_differentiable\(problem\.pose_tangent"):
+            value.sum().backward()
+    # the values are those of a solve without the gradient request, bit for bit
+    plain = problem_from(scene, init.poses, init.points, weights=weights.detach())
+    reference = torchslam.solve(plain)
+    assert not reference.pose_tangent.requires_grad
+    assert torch.equal(result.pose_tangent.detach(), reference.pose_tangent)
+    with torch.no_grad():  # no gradient wanted: plain tensors
+        assert not torchslam.solve(
+            problem_from(scene, init.poses, init.points, weights=weights)
+        ).points.requires_grad

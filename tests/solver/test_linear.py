@@ -307,7 +307,7 @@ def test_one_gauss_newton_iteration_is_the_seed_step_on_the_manifold(weighting):
         Jb = J[b][:, free]
         delta = torch.zeros(6 * m + 3 * n, dtype=torch.float64)
         delta[free] = -torch.linalg.solve(Jb.T @ Jb, Jb.T @ r[b])
-        poses = problem.poses().detach()[b] @ torchslam.se3.exp(delta[: 6 * m].reshape(m, 6))
+        poses = problem.poses.detach()[b] @ torchslam.se3.exp(delta[: 6 * m].reshape(m, 6))
         points = problem.points.detach()[b] + delta[6 * m :].reshape(n, 3)
         torch.testing.assert_close(result.poses[b], poses, rtol=0, atol=1e-10)
         torch.testing.assert_close(result.points[b], points, rtol=0, atol=1e-10)

@@ -144,7 +144,7 @@ def check_problem_poses(problem: object, *, warn: bool = True) -> list[PoseDirec
             f"{fn}: argument 'problem' must be a PointMapProblem, got {_checks.describe(problem)}"
         )
     with torch.no_grad():
-        T = problem.poses()
+        T = problem.poses
         points = problem.points
         given = cost_from_poses(T, points, problem.data)
         flipped = cost_from_poses(se3.inverse(T), points, problem.data)
