@@ -456,9 +456,6 @@ def test_bad_parameter_blocks_are_clear_errors():
     p = problem_from_bal(b)
     with pytest.raises(ValueError, match="every parameter group"):
         torchslam.solve_tensors(p.pose_tangent, p.points, p.data, parameters={})
-    with pytest.raises(ValueError, match="does not take yet"):
-        blocks = dict(p.parameter_blocks.items())
-        torchslam.solve_differentiable(p.pose_tangent, p.points, p.data, parameters=blocks)
     with pytest.raises(TypeError, match="BALProblem"):
         problem_from_bal("scene.txt")
 
@@ -477,12 +474,13 @@ def test_solve_tensors_returns_the_parameter_blocks():
     )
 
 
-@pytest.mark.parametrize("backward", ["unrolled", "truncated"])
+@pytest.mark.parametrize("backward", ["unrolled", "truncated", "implicit"])
 def test_differentiable_bundle_adjustment_with_free_intrinsics(backward):
     """Gradients of the solved focal lengths w.r.t. the observed pixels (unrolled through the
-    solve, whose iterations run to convergence) against central differences of the whole
-    solve. Step 1e-3 px on pixels of ~100 px: truncation O(h²) negligible, the solves'
-    stopping noise (~1e-9) over 2h well below the 1e-4 relative bar."""
+    solve, whose iterations run to convergence, or implicit at its minimum) against central
+    differences of the whole solve. Step 1e-3 px on pixels of ~100 px: truncation O(h²)
+    negligible, the solves' stopping noise (~1e-9) over 2h well below the 1e-4 relative
+    bar."""
     b = _scene(C=3, N=15, seed=15, perturbation=0.5)
     pixels = b.observations.clone().requires_grad_(True)
 
@@ -509,3 +507,50 @@ def test_differentiable_bundle_adjustment_with_free_intrinsics(backward):
         numeric = float(numeric) / (2 * h)
         got = float(grad.reshape(-1)[flat])
         assert got == pytest.approx(numeric, rel=1e-4, abs=1e-6 * float(grad.abs().max()))
+
+
+def test_implicit_gradient_of_the_initial_parameter_blocks():
+    # At a minimum the free blocks do not depend on their starting values (gradient 0) and a
+    # fixed block is its starting value (gradient 1); the solution's other variables depend
+    # on a fixed block's value, which the implicit function theorem gives: checked against
+    # central differences of the whole solve (step 1e-3 on focal lengths of ~600: relative
+    # 2e-6, truncation negligible; stopping noise ~1e-9 / 2h well below the 1e-4 bar).
+    b = _scene(C=3, N=15, seed=16, perturbation=0.5)
+    p = _gauge_fixed(b)
+    fixed = {"intrinsics": torch.tensor([False, True, False])}
+    problem = torchslam.PointMapProblem(
+        p.poses.detach(), p.points.detach(), torch.zeros(1, 0, dtype=torch.long),
+        torch.zeros(1, 0, dtype=torch.long), torch.zeros(1, 0, 3, dtype=F64),
+        fixed_poses=p.data.fixed_poses, fixed_points=p.data.fixed_points,
+        terms=[_bal_term(b)], parameters={"intrinsics": b.cameras[:, 6:9]},
+        fixed_parameters=fixed,
+    )  # fmt: skip
+    start = problem.parameter_blocks["intrinsics"].detach().clone()
+
+    def solve(blocks, backward="implicit"):
+        r = torchslam.solve_differentiable(
+            problem.pose_tangent.detach(), problem.points.detach(), problem.data, TIGHT,
+            backward=backward, parameters={"intrinsics": blocks},
+        )  # fmt: skip
+        assert r.converged[0]
+        return r
+
+    blocks = start.clone().requires_grad_(True)
+    r = solve(blocks)
+    focal = r.parameters["intrinsics"][0, :, 0]
+    (grad,) = torch.autograd.grad(focal[1], blocks, retain_graph=True)
+    assert float(grad[0, 1, 0]) == 1.0  # the fixed block is its start
+    assert float(grad[0, [0, 2]].abs().max()) == 0.0
+    # free blocks: the minimum does not move with their start
+    (grad,) = torch.autograd.grad(focal.sum(), blocks, retain_graph=True)
+    assert float(grad[0, [0, 2]].abs().max()) == 0.0
+    # the free focal lengths move with the fixed one: implicit vs central differences
+    (grad,) = torch.autograd.grad(focal[[0, 2]].sum(), blocks)
+    h = 1e-3
+    e = torch.zeros_like(start)
+    e[0, 1, 0] = h
+    with torch.no_grad():
+        plus = solve(start + e, "none").parameters["intrinsics"][0, [0, 2], 0].sum()
+        minus = solve(start - e, "none").parameters["intrinsics"][0, [0, 2], 0].sum()
+    numeric = float(plus - minus) / (2 * h)
+    assert float(grad[0, 1, 0]) == pytest.approx(numeric, rel=1e-4, abs=1e-8)

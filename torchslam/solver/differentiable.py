@@ -43,6 +43,10 @@ loss (e.g. ``HuberLoss(scale)`` with a tensor scale), and the initial guess. Fou
   falls back to conjugate gradients on the exact Hessian (Hessian-vector products by double
   backward) preconditioned by the Gauss-Newton solve. ``hessian="gauss_newton"`` solves with
   JᵀJ alone: cheaper, but it drops the Σ r∇²r and ρ'' terms, an O(residual) error.
+  Parameter blocks (:mod:`torchslam.objective.parameters`) join the chart as the forward's
+  reduced system has them (δ_p over the m poses and then the S slots, x ← x + δ, a slot's
+  entries past its block's size inert); their exact Hessian is not assembled in blocks, so
+  such problems always take the conjugate gradients (exact Hessian-vector products).
   Fixed variables keep their given values: the initial guess
   receives the identity there, plus the effect of moving a fixed variable (e.g. the gauge
   pose) on the free solution; elsewhere the solution does not depend on the initial guess.
@@ -188,8 +192,9 @@ def solve_differentiable(
             "raise" (``RuntimeError``) or "implicit" (the implicit gradient anyway).
         parameters: initial parameter blocks {group: (B, q, d)} of data that has them
             (:mod:`torchslam.objective.parameters`); may require grad. Backward "unrolled",
-            "truncated" or "none" (the implicit backward does not take parameter blocks
-            yet); the result's ``parameters`` are differentiable like its poses.
+            any backward (the implicit one solves with conjugate gradients on the exact
+            Hessian, module doc); the result's ``parameters`` are differentiable like its
+            poses.
 
     Returns:
         A :class:`SolveResult`; ``pose_tangent`` (B, m, 6), ``points`` (B, n, 3) and
@@ -204,13 +209,6 @@ def solve_differentiable(
     fn = "solve_differentiable"
     config = check_solve_inputs(fn, pose_tangent, points, data, config)
     slots = pack_values(fn, data.parameters, parameters, pose_tangent, detach=False)
-    if slots is not None and backward == "implicit":
-        raise ValueError(
-            f"{fn}: the problem has parameter blocks {list(data.parameters.names)} (variables "
-            "beyond poses and points), which backward='implicit' does not take yet; use "
-            "backward='unrolled' (or 'truncated'), or give known values as a term's constants "
-            "(e.g. ReprojectionTerm(intrinsics=...), which may require grad)"
-        )
     _checks.check_tensor(fn, "pose_tangent", pose_tangent, (6,), min_batch_dims=2, dims="Bm")
     _checks.check_tensor(fn, "points", points, (3,), min_batch_dims=2, dims="Bn")
     _checks.check_same_kind(
@@ -260,7 +258,7 @@ def solve_differentiable(
     if _checks.value_checks_active():
         _check_graphs_alive(fn, pose_tangent, points, data)
     if backward == "implicit":
-        return _solve_implicit(pose_tangent, points, data, config, implicit, on_unconverged)
+        return _solve_implicit(pose_tangent, points, data, config, implicit, on_unconverged, slots)
     start = time.perf_counter()
     with _checks.validation(False):
         if backward == "unrolled":
@@ -453,21 +451,24 @@ def _dot(a: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor]) -> Tensor:
 
 
 class _ImplicitSolution(torch.autograd.Function):
-    """Identity on the solution (ξ*, X*) in forward; implicit-function VJP in backward."""
+    """Identity on the solution (ξ*, X*, P*) in forward; implicit-function VJP in backward.
+
+    P* and P0 are the parameter blocks' slot values (B, S, 6) at the solution and at the
+    start, for a problem that has them; else two empty (B, 0, 6) tensors."""
 
     @staticmethod
-    def forward(ctx, xi_star, X_star, xi0, X0, spec, *theta):
+    def forward(ctx, xi_star, X_star, P_star, xi0, X0, P0, spec, *theta):
         ctx.spec = spec
-        ctx.save_for_backward(xi_star, X_star, xi0, X0, *theta)
-        return xi_star.clone(), X_star.clone()
+        ctx.save_for_backward(xi_star, X_star, P_star, xi0, X0, P0, *theta)
+        return xi_star.clone(), X_star.clone(), P_star.clone()
 
     @staticmethod
-    def backward(ctx, grad_xi, grad_X):
+    def backward(ctx, grad_xi, grad_X, grad_P):
         with threads_for(ctx.spec.data.data):  # small problems on one thread (._threads)
-            return _ImplicitSolution._backward(ctx, grad_xi, grad_X)
+            return _ImplicitSolution._backward(ctx, grad_xi, grad_X, grad_P)
 
     @staticmethod
-    def _backward(ctx, grad_xi, grad_X):
+    def _backward(ctx, grad_xi, grad_X, grad_P):
         # The engine runs a backward in grad mode exactly when it records a graph of the
         # gradient (create_graph=True). That graph would have to differentiate the solution
         # map twice (third derivatives of the cost); rather than return a gradient that
@@ -481,41 +482,57 @@ class _ImplicitSolution(torch.autograd.Function):
                 "differentiate twice."
             )
         spec: _ImplicitSpec = ctx.spec
-        xi_star, X_star, xi0, X0, *theta = ctx.saved_tensors
+        xi_star, X_star, P_star, xi0, X0, P0, *theta = ctx.saved_tensors
         need = ctx.needs_input_grad
-        need_theta = list(need[5:])
+        need_theta = list(need[7:])
         data0 = spec.data.data
+        m = xi_star.shape[1]
         free_pose = ~data0.fixed_poses[..., None]
         free_point = ~data0.fixed_points[..., None]
+        layout = data0.parameters
+        if layout is None:
+            fixed_slot = torch.zeros(P_star.shape[:2], dtype=torch.bool, device=P_star.device)
+            active = fixed_slot[0, :, None].expand(-1, 6)
+        else:
+            # clones: the layout caches its masks, perhaps first made in inference mode
+            fixed_slot = layout.fixed_slots().to(P_star.device).clone()
+            active = layout.active.to(P_star.device).clone()
+        # the slots' tangent entries that are variables: free blocks, entries of a block
+        free_slot = ~fixed_slot[..., None] & active
         with torch.enable_grad(), _checks.validation(False):
             leaves = [t.detach().requires_grad_(n) for t, n in zip(theta, need_theta, strict=True)]
-            xi0_leaf = xi0.detach().requires_grad_(need[2])
-            X0_leaf = X0.detach().requires_grad_(need[3])
+            xi0_leaf = xi0.detach().requires_grad_(need[3])
+            X0_leaf = X0.detach().requires_grad_(need[4])
+            P0_leaf = P0.detach().requires_grad_(need[5])
             data = spec.data.rebuild(leaves)
-            # The chart x* ⊞ δ; fixed variables read the initial guess (their gradient path).
-            dp = torch.zeros_like(xi_star, requires_grad=True)
+            # The chart x* ⊞ δ (δ_p over the poses and then the parameter slots, as in the
+            # forward's reduced system); fixed variables read the initial guess (their
+            # gradient path); a slot's entries past its block's size are inert.
+            dp = xi_star.new_zeros(xi_star.shape[0], m + P_star.shape[1], 6).requires_grad_()
             dl = torch.zeros_like(X_star, requires_grad=True)
             with _checks.validation(False):
                 T = torch.where(
                     data0.fixed_poses[..., None, None],
                     se3.exp(xi0_leaf, form="fast"),
-                    _MATRIX.plus(se3.exp(xi_star, form="fast"), dp),
+                    _MATRIX.plus(se3.exp(xi_star, form="fast"), dp[:, :m]),
                 )
             X = torch.where(data0.fixed_points[..., None], X0_leaf, X_star + dl)
-            F = cost_from_poses(T, X, data).sum()
+            P = None
+            if layout is not None:
+                P = torch.where(fixed_slot[..., None], P0_leaf, P_star + dp[:, m:] * active)
+            F = cost_from_poses(T, X, data, P).sum()
             g = torch.autograd.grad(F, (dp, dl), create_graph=True)
 
-            # v = (dξ*/dδ)ᵀ ḡ with dξ*/dδ = jr_inv(ξ*) = jl_inv(−ξ*) (SE3Tangent.plus_jacobian).
+            # v = (dξ*/dδ)ᵀ ḡ with dξ*/dδ = jr_inv(ξ*) = jl_inv(−ξ*) (SE3Tangent.plus_jacobian);
+            # the parameter slots' chart is the identity.
             with _checks.validation(False):
                 jr_inv = se3.jr_inv(xi_star, form="fast")
-            v = (
-                (grad_xi[..., None, :] @ jr_inv)[..., 0, :] * free_pose,
-                grad_X * free_point,
-            )
-            w = _solve_hessian(spec, data0, xi_star, X_star, g, (dp, dl), v)
+            v_pose = (grad_xi[..., None, :] @ jr_inv)[..., 0, :] * free_pose
+            v = (torch.cat((v_pose, grad_P * free_slot), dim=1), grad_X * free_point)
+            w = _solve_hessian(spec, data0, xi_star, X_star, g, (dp, dl), v, P_star)
 
             wanted = [leaf for leaf in leaves if leaf.requires_grad]
-            wanted += [x for x in (xi0_leaf, X0_leaf) if x.requires_grad]
+            wanted += [x for x in (xi0_leaf, X0_leaf, P0_leaf) if x.requires_grad]
             grads = iter(())
             if wanted:
                 inner = _dot(g, w).sum()
@@ -528,13 +545,15 @@ class _ImplicitSolution(torch.autograd.Function):
             return torch.zeros_like(leaf) if d is None else -d
 
         theta_grads = [take(leaf) for leaf in leaves]
-        xi0_grad, X0_grad = take(xi0_leaf), take(X0_leaf)
+        xi0_grad, X0_grad, P0_grad = take(xi0_leaf), take(X0_leaf), take(P0_leaf)
         # The fixed variables of the output are the initial guess itself.
         if xi0_grad is not None:
             xi0_grad = xi0_grad + grad_xi * ~free_pose
         if X0_grad is not None:
             X0_grad = X0_grad + grad_X * ~free_point
-        return (None, None, xi0_grad, X0_grad, None, *theta_grads)
+        if P0_grad is not None:
+            P0_grad = P0_grad + grad_P * fixed_slot[..., None]
+        return (None, None, None, xi0_grad, X0_grad, P0_grad, None, *theta_grads)
 
 
 def _solve_hessian(
@@ -545,8 +564,13 @@ def _solve_hessian(
     g: tuple[Tensor, Tensor],
     delta: tuple[Tensor, Tensor],
     v: tuple[Tensor, Tensor],
+    slots: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """w = H⁻¹ v per problem; H the Hessian of F in the chart at δ = 0 (module doc).
+
+    With parameter blocks (``slots`` (B, S, 6) at the solution; the pose parts of g, δ, v
+    then cover m + S rows, as the forward's reduced system does) the exact H is not
+    assembled: every problem runs the conjugate gradients below.
 
     Exact (default): H assembled in the forward's block structure (:mod:`.hessian`) and
     factored once by the forward pass's plan (:meth:`torchslam.solver.plan.LinearPlan.
@@ -561,7 +585,7 @@ def _solve_hessian(
     plan = LinearPlan.build(data, config)
     lam = xi_star.new_zeros(xi_star.shape[0])
     fallback = None
-    if options.hessian == "exact":
+    if options.hessian == "exact" and data.parameters is None:
         w_exact, ok = _exact_solve(plan, data, xi_star, X_star, v, config)
         if bool(ok.all()):
             return w_exact
@@ -577,7 +601,8 @@ def _solve_hessian(
         # gradient iteration then reuses the factorization (two triangular solves).
         factor = whitening_factors(data)
         structured = config.linear_solver == "schur"
-        lin = linearize(xi_star, X_star, data, factor, config.jacobian, structured)
+        params = None if data.parameters is None else slots
+        lin = linearize(xi_star, X_star, data, factor, config.jacobian, structured, None, params)
         gauss_newton = plan.factorize(lin, lam)
 
     def precondition(r: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
@@ -668,13 +693,15 @@ def _solve_implicit(
     config: SolverConfig,
     implicit: ImplicitConfig,
     on_unconverged: str,
+    slots: Tensor | None = None,
 ) -> SolveResult:
-    result = solve_tensors(pose_tangent, points, data, config)
+    layout = data.parameters
+    initial = None if slots is None else layout.unpack(slots.detach())
+    result = solve_tensors(pose_tangent, points, data, config, parameters=initial)
     data_spec = _DataSpec.of(data)
     theta = data_spec.tensors()
-    if not torch.is_grad_enabled() or not any(
-        t.requires_grad for t in (pose_tangent, points, *theta)
-    ):
+    start_values = (pose_tangent, points) + (() if slots is None else (slots,))
+    if not torch.is_grad_enabled() or not any(t.requires_grad for t in (*start_values, *theta)):
         return result
     unconverged = [b for b, ok in enumerate(result.converged) if not ok]
     if unconverged and on_unconverged == "raise":
@@ -702,12 +729,19 @@ def _solve_implicit(
         # iterate cannot turn that zero into NaN (0 · NaN) in the Hessian solve.
         rerun = torch.tensor([b in unconverged for b in range(len(result.status))])
         rerun = rerun.to(xi_star.device)
+    # the parameter slots (B, S, 6), empty (S = 0) without parameter blocks
+    P0 = pose_tangent.new_zeros(pose_tangent.shape[0], 0, 6) if slots is None else slots
+    P_star = P0.detach() if slots is None else layout.pack(result.parameters)
+    if unroll:
         xi_star = torch.where(rerun[:, None, None], pose_tangent.detach(), xi_star)
         X_star = torch.where(rerun[:, None, None], points.detach(), X_star)
-    xi, X = xi_star, X_star
+        P_star = torch.where(rerun[:, None, None], P0.detach(), P_star)
+    xi, X, P = xi_star, X_star, P_star
     if len(unconverged) < len(result.status) or not unroll:
         spec = _ImplicitSpec(data_spec, config, implicit)
-        xi, X = _ImplicitSolution.apply(xi_star, X_star, pose_tangent, points, spec, *theta)
+        xi, X, P = _ImplicitSolution.apply(
+            xi_star, X_star, P_star, pose_tangent, points, P0, spec, *theta
+        )
     if unroll:
         # Unrolled: the same iterations with autograd on (problems are independent in the
         # batch, so the others do not change them); no problem needs more than the most any
@@ -715,12 +749,17 @@ def _solve_implicit(
         cap = int(result.iterations[unconverged].max())
         rerun_config = dataclasses.replace(config, reduced_solver="dense", max_iterations=cap)
         with _checks.validation(False):
-            state, _ = loop.run(pose_tangent, points, data, rerun_config, None)
+            state, _ = loop.run(pose_tangent, points, data, rerun_config, None, parameters=slots)
         xi = torch.where(rerun[:, None, None], state.xi, xi)
         X = torch.where(rerun[:, None, None], state.X, X)
+        if slots is not None:
+            P = torch.where(rerun[:, None, None], state.parameters, P)
     with _checks.validation(False):
-        final_cost = cost(xi, X, data)
-    return dataclasses.replace(result, pose_tangent=xi, points=X, final_cost=final_cost)
+        final_cost = cost(xi, X, data, None if slots is None else P)
+    parameters = {} if slots is None else layout.unpack(P)
+    return dataclasses.replace(
+        result, pose_tangent=xi, points=X, final_cost=final_cost, parameters=parameters
+    )
 
 
 def _describe(result: SolveResult, problems: list[int], limit: int = 10) -> str:
