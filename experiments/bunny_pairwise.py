@@ -36,11 +36,11 @@ from pathlib import Path
 import torch
 
 from torchslam import registration
+from torchslam.data import fetch
 from torchslam.io.ply import read_ply_points
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, stack
 from torchslam.registration import icp
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
 DEFAULT_ORDER = (
     "bun270",
     "bun315",
@@ -114,13 +114,15 @@ def run(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="bunny data folder")
+    parser.add_argument(
+        "--data", type=Path, default=None, help="bunny data folder (default: the data set 'bunny')"
+    )
     parser.add_argument(
         "--order", default=",".join(DEFAULT_ORDER), help="comma-separated chain order"
     )
     parser.add_argument("--hypotheses", type=int, default=128, help="initial rotations per pair")
     args = parser.parse_args(argv)
-    data: Path = args.data
+    data: Path = args.data or fetch("bunny")
     if not (data / "bun.conf").is_file():
         print(f"no bun.conf in {os.path.normpath(data)}; pass --data", file=sys.stderr)
         return 2

@@ -46,12 +46,12 @@ import numpy as np
 import torch
 
 from torchslam import registration
+from torchslam.data import fetch
 from torchslam.io import trajectories
 from torchslam.io.stanford import read_conf, relative_to_first, stack
 from torchslam.lie import se3
 from torchslam.registration import icp
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bunny"
 PEERS_PYTHON = Path("/work/peers-venv/bin/python")
 SCANS = ["bun000", "bun045", "bun090", "bun180", "bun270", "bun315", "chin", "ear_back"]
 SCANS += ["top2", "top3"]
@@ -491,7 +491,9 @@ def evo_check(data: Path, result_poses: torch.Tensor | None = None) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="bunny data folder")
+    parser.add_argument(
+        "--data", type=Path, default=None, help="bunny data folder (default: the data set 'bunny')"
+    )
     parser.add_argument("--repeats", type=int, default=7, help="alternating runs per method")
     parser.add_argument(
         "--whole-repeats", type=int, default=1, help="runs of the whole registration"
@@ -499,6 +501,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--peers-python", type=Path, default=PEERS_PYTHON)
     parser.add_argument("--skip-whole", action="store_true", help="pairwise table and evo only")
     args = parser.parse_args(argv)
+    args.data = args.data or fetch("bunny")
     if not (args.data / "bun.conf").is_file():
         print(f"no bun.conf in {os.path.normpath(args.data)}; pass --data", file=sys.stderr)
         return 2

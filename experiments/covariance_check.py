@@ -40,11 +40,11 @@ import numpy as np
 import torch
 
 import torchslam as ts
+from torchslam.data import fetch
 from torchslam.io import g2o
 from torchslam.lie import se3
 from torchslam.posegraph.solve import PosePriors, solve_pose_graph
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "posegraph"
 GTSAM_PYTHON = os.environ.get("GTSAM_PYTHON", "/work/peers-venv/bin/python")
 CONFIGS = {
     "dense": ts.SolverConfig(reduced_solver="dense"),
@@ -360,7 +360,7 @@ def check_gtsam_and_speed(skip_gtsam: bool, skip_speed: bool) -> bool:
         print(f"3. gtsam is not importable from {GTSAM_PYTHON}: the GTSAM comparisons are skipped")
     names = ["parking-garage"] + ([] if skip_speed else ["sphere2500"])
     for name in names:
-        path = DATA / f"{name}.g2o"
+        path = fetch("posegraph") / f"{name}.g2o"
         if not path.exists():
             print(f"   {path} not found: skipped")
             continue

@@ -26,8 +26,9 @@ from pathlib import Path
 
 import torch
 
+from torchslam.data import fetch
+
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data" / "posegraph"
 
 
 def export_base(rev: str, folder: Path) -> None:
@@ -49,8 +50,9 @@ def main() -> None:
     parser.add_argument("--base", required=True, help="the earlier commit (any git revision)")
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall")
-    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--data", type=Path, default=None)
     args = parser.parse_args()
+    args.data = args.data or fetch("posegraph")
     torch.set_num_threads(1)
     clock = time.perf_counter if args.clock == "wall" else time.process_time
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,6 +1,6 @@
 """Pose-graph Levenberg-Marquardt on the shared benchmarks: optimum, SE-Sync objective, wall time.
 
-For sphere2500 and parking-garage (../shared/data/posegraph/ relative to the repository; a
+For sphere2500 and parking-garage (the data set ``posegraph``, ``torchslam.data.fetch``; a
 missing file is skipped with a message), from two initializations:
 
 - "odometry": the file's vertex values (the odometry chain as recorded; what GTSAM starts from),
@@ -54,12 +54,12 @@ import numpy as np
 import torch
 
 import torchslam
+from torchslam.data import fetch
 from torchslam.data.posegraph import make_pose_graph
 from torchslam.io import g2o
 from torchslam.posegraph import certify, initialization, objectives
 from torchslam.posegraph.solve import PoseGraphSolverConfig, solve_pose_graph
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "posegraph"
 # name: (GTSAM LM ½χ², GTSAM LM seconds, GTSAM SE-Sync objective, certified SE-Sync optimum)
 REFERENCE = {
     "sphere2500": (675.70, 1.27, 1730.0, 1687.0),
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(header)
     for name, (gtsam_cost, gtsam_seconds, gtsam_sesync, optimum) in REFERENCE.items():
-        path = DATA / f"{name}.g2o"
+        path = fetch("posegraph") / f"{name}.g2o"
         if not path.exists():
             print(f"{name}: {path} is absent, skipped")
             continue
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         "(pose 0 fixed, SolverConfig(initial_lambda=1e-9), reduced_solver auto → sparse):"
     )
     for name, (gtsam_cost, gtsam_seconds, _, _) in REFERENCE.items():
-        path = DATA / f"{name}.g2o"
+        path = fetch("posegraph") / f"{name}.g2o"
         if not path.exists():
             continue
         graph = g2o.read_g2o(path)
@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print()
     for name in REFERENCE:
-        path = DATA / f"{name}.g2o"
+        path = fetch("posegraph") / f"{name}.g2o"
         if not path.exists():
             continue
         outcome = _gtsam_lm(path)
@@ -233,7 +233,7 @@ def _sesync_section(config: PoseGraphSolverConfig) -> None:
     )
     targets = {"sphere2500": 1687.0, "parking-garage": 1.263, "MIT": None}
     for name, optimum in targets.items():
-        path = DATA / f"{name}.g2o"
+        path = fetch("posegraph") / f"{name}.g2o"
         if not path.exists():
             print(f"{name}: {path} is absent, skipped")
             continue
@@ -385,7 +385,7 @@ def _process_section(repeats: int) -> None:
             "torchslam's last line / GTSAM ½χ²"
         )
         for name in ("sphere2500", "parking-garage"):
-            path = DATA / f"{name}.g2o"
+            path = fetch("posegraph") / f"{name}.g2o"
             if not path.exists():
                 continue
             for cpus in (1, 2):

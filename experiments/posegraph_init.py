@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
+from torchslam.data import fetch
 from torchslam.io import g2o
 from torchslam.posegraph import initialization, objectives
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "posegraph"
 REFERENCE = {  # (GTSAM LM standard cost, SE-Sync certified optimum f*)
     "sphere2500": (675.70, 1687.0),
     "parking-garage": (0.63419, 1.263),
@@ -28,7 +27,7 @@ REFERENCE = {  # (GTSAM LM standard cost, SE-Sync certified optimum f*)
 
 def main() -> int:
     for name, (gtsam_cost, sesync_optimum) in REFERENCE.items():
-        path = DATA / f"{name}.g2o"
+        path = fetch("posegraph") / f"{name}.g2o"
         if not path.exists():
             print(f"{name}: {path} is absent, skipped")
             continue

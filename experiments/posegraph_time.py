@@ -15,17 +15,17 @@ from pathlib import Path
 import torch
 
 import torchslam
+from torchslam.data import fetch
 from torchslam.io import g2o
 from torchslam.posegraph.solve import solve_pose_graph
-
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "posegraph"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--data", type=Path, default=None)
     args = parser.parse_args()
+    args.data = args.data or fetch("posegraph")
     torch.set_num_threads(1)
     print(f"torchslam from {Path(torchslam.__file__).parent}")
     for name in ("parking-garage", "sphere2500"):

@@ -1,7 +1,8 @@
 """ICP-SLAM on real sequences, side by side with the odometry users would pick instead.
 
-For each sequence (default: the three of ``../shared/data``: 7-Scenes depth frames, the
-hku2-loop and quick-shack LiDAR keyframes) and each thread count (default 1 and 2):
+For each sequence (default: the library's three data sets of sequences, fetched by
+``torchslam.data.fetch``: 7-Scenes depth frames, the hku2-loop and quick-shack LiDAR
+keyframes) and each thread count (default 1 and 2):
 
 - torchslam: the whole run as a user runs it, **reading included**: the frames are read with
   ``torchslam.io.frames`` and fed to the streaming :class:`torchslam.slam.SLAM` (the defaults
@@ -19,8 +20,8 @@ a pseudo ground truth).
 
 Usage::
 
-    .venv/bin/python experiments/slam_sequences.py [--sequences rgbd/7scenes-150-199,...]
-        [--data ../shared/data] [--threads 1,2] [--peers-python ../peers-venv/bin/python]
+    .venv/bin/python experiments/slam_sequences.py [--sequences rgbd-7scenes,...|FOLDER]
+        [--threads 1,2] [--peers-python ../peers-venv/bin/python]
         [--no-peers] [--out out/slam_sequences]
 
 Writes ``OUT/results.json`` and ``OUT/time_rss.png`` (time per frame and RSS against the frame
@@ -40,10 +41,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchslam.data import fetch
 from torchslam.lie import se3
 
 ROOT = Path(__file__).resolve().parents[1]
-SEQUENCES = ("rgbd/7scenes-150-199", "lidar/hku2-loop", "lidar/quick-shack")
+# the library's data sets (torchslam.data.files: mirrored, cached or downloaded)
+SEQUENCES = ("rgbd-7scenes", "lidar-hku2-loop", "lidar-quick-shack")
 
 
 def _rss_mb() -> float:
@@ -191,11 +194,10 @@ def run_peers(python: str, folder: Path, sensor: str, threads: int, work: Path):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sequences", default=",".join(SEQUENCES))
     parser.add_argument(
-        "--data",
-        type=Path,
-        default=Path(os.environ.get("TORCHSLAM_DATA_MIRROR", ROOT.parent / "shared" / "data")),
+        "--sequences",
+        default=",".join(SEQUENCES),
+        help="data set names (torchslam data list) or folders of frames, comma-separated",
     )
     parser.add_argument("--threads", default="1,2")
     parser.add_argument(
@@ -214,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"peers skipped: no {args.peers_python} (bash ../shared/tools/install-peers.sh)")
     rows, series = [], {}
     for name in args.sequences.split(","):
-        folder = args.data / name
+        folder = Path(name) if Path(name).is_dir() else fetch(name)
         work = args.out / name.replace("/", "_")
         work.mkdir(parents=True, exist_ok=True)
         for t in threads:

@@ -18,17 +18,10 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
-import os
 import statistics
 import time
-from pathlib import Path
 
 import torch
-
-# The project's copy of the data sets, as the tests use it (torchslam.data.files).
-_SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-if _SHARED.is_dir():
-    os.environ.setdefault("TORCHSLAM_DATA_MIRROR", str(_SHARED))
 
 
 def _spin() -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam.io.stanford import pose_errors, read_conf, stack
 from torchslam.lie import se3, so3
 from torchslam.registration import icp
@@ -337,13 +338,12 @@ def test_chain_poses_compose_successive_steps(generator):
 # ----------------------------------------------------------------------------- real data
 
 _REPO = Path(__file__).resolve().parents[1]
-_BUNNY = _REPO / ".." / "shared" / "data" / "bunny"
+_BUNNY = dataset_folder("bunny")
 
 
 @pytest.mark.skipif(
     not (_BUNNY / "bun.conf").is_file(),
-    reason=f"Stanford bunny data not found at {_BUNNY.resolve()} (the shared/data checkout "
-    "next to the repository); the synthetic tests above cover ICP itself",
+    reason=f"Stanford bunny data not found ({_BUNNY}); the synthetic tests above cover ICP itself",
 )
 def test_bunny_pairwise_chain_small(monkeypatch):
     """Three real scans through experiments/bunny_pairwise.py, checked against bun.conf."""

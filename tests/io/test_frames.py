@@ -1,6 +1,6 @@
 """Range-sensor frames (torchslam.io.frames) on small files written here by the reference
-writers (pypcd4, plyfile, imageio, numpy), plus one real file of each kind when shared/data is
-checked out next to the repository."""
+writers (pypcd4, plyfile, imageio, numpy), plus one real file of each kind when the data sets
+are available (torchslam.data: mirrored or cached)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import pypcd4
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam.io.frames import (
     POINT_SUFFIXES,
     check_intrinsics,
@@ -28,8 +29,6 @@ from torchslam.io.frames import (
     read_reference_poses,
     read_timestamps,
 )
-
-_SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 # Dyadic values (exact in float32 and printed exactly by pypcd4's ascii "%.10f").
 XYZI = np.array(
@@ -708,14 +707,13 @@ def test_read_reference_poses_bad_inputs(tmp_path):
 
 # ---------------------------------------------------------------------------- real data
 
-_needs_shared = pytest.mark.skipif(
-    not _SHARED.is_dir(), reason=f"shared data not found at {_SHARED} (checkout next to repo)"
-)
+_HKU = dataset_folder("lidar-hku2-loop")
+_SEVEN_SCENES = dataset_folder("rgbd-7scenes")
 
 
-@_needs_shared
+@pytest.mark.skipif(not _HKU.is_dir(), reason=f"data set not found ({_HKU})")
 def test_real_hku_lidar_scan():
-    path = _SHARED / "lidar" / "hku2-loop" / "Scans" / "000000.pcd"
+    path = _HKU / "Scans" / "000000.pcd"
     if not path.is_file():
         pytest.skip(f"{path} missing")
     points, dropped = read_points(path, return_dropped=True)
@@ -724,9 +722,9 @@ def test_real_hku_lidar_scan():
     assert bool(torch.isfinite(points).all())
 
 
-@_needs_shared
+@pytest.mark.skipif(not _SEVEN_SCENES.is_dir(), reason=f"data set not found ({_SEVEN_SCENES})")
 def test_real_seven_scenes_depth_frame():
-    folder = _SHARED / "rgbd" / "7scenes-150-199"
+    folder = _SEVEN_SCENES
     path = folder / "frame-000150.depth.png"
     if not path.is_file():
         pytest.skip(f"{path} missing")

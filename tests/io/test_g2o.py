@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam.io import g2o
 from torchslam.lie import se3
 from torchslam.posegraph import PoseGraph, between
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "posegraph"
+DATA = dataset_folder("posegraph")
 
 
 def _upper(matrix: np.ndarray) -> list[float]:
@@ -220,7 +220,7 @@ def test_vertices_only(tmp_path):
 def test_shared_posegraph_data(name, vertices, edges, odometry):
     path = DATA / f"{name}.g2o"
     if not path.exists():
-        pytest.skip(f"shared data file {path} is absent (see ../shared/data/README.md)")
+        pytest.skip(f"data file {path} is absent (torchslam data fetch posegraph)")
     graph = g2o.read_g2o(path)
     assert graph.num_vertices == vertices
     assert graph.num_edges == edges

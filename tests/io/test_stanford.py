@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import dataset_folder
 from torchslam.io.ply import read_ply_points
 from torchslam.io.stanford import pose_errors, read_conf, relative_to_first, scan_name, stack
 from torchslam.lie import se3
 
-BUNNY = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "bunny"
+BUNNY = dataset_folder("bunny")
 
 CONF = """camera -0.0172 -0.0936 -0.734  -0.0461723 0.970603 -0.235889 0.0124573
 bmesh bun000.ply 0 0 0 0 0 0 1
@@ -127,7 +128,7 @@ def test_pose_errors_measure_a_known_perturbation(generator):
 
 @pytest.mark.skipif(
     not (BUNNY / "bun.conf").is_file(),
-    reason=f"Stanford bunny data not found at {BUNNY.resolve()} (../shared/data/bunny)",
+    reason=f"Stanford bunny data not found ({BUNNY})",
 )
 def test_bunny_conf_overlap_of_bun000_and_bun045():
     """shared/data/README.md: at bun.conf, bun045 covers about half of bun000 within 1 mm."""
