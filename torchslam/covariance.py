@@ -25,7 +25,8 @@ with the same config). The pose blocks come from the reduced system S = U − W 
   block Takahashi recursion on that factor (:func:`torchslam.solver.sparse.selected_inverse`);
   the pattern holds every diagonal block and every pair of poses that share a point or a
   term, so a cross block outside it costs 6 extra solves per distinct pose (never a dense
-  inverse of the system);
+  inverse of the system); a parameter block's slots (one term touches them all) lie on it
+  too;
 - the "dense" method (``SolverConfig(linear_solver="dense")``, small problems): the blocks
   of H⁻¹ from the Cholesky factor of the full system.
 
@@ -352,11 +353,6 @@ def _marginals_work(
             slots,
         )
         plan = LinearPlan.build(data, config)
-        if plan.sparse and data.parameters is not None:
-            raise ValueError(
-                f"{fn}: covariances of a problem with parameter blocks need the dense reduced "
-                "solver; pass config=SolverConfig(reduced_solver='dense')"
-            )
         wants_grad = torch.is_grad_enabled() and any(
             isinstance(t, Tensor) and t.requires_grad
             for t in (lin.pose_blocks, lin.pose_gradient, getattr(lin, "coupling", None))
@@ -370,10 +366,11 @@ def _marginals_work(
             )
         factorization = plan.factorize(lin, pose_tangent.new_zeros(B))
         selection = (pose_index, point_index, pair_index)
+        inverses: dict = {}  # the sparse path's selected inverses, by problem
         if plan.method == "dense":
             out = _full(factorization, data, selection, tolerance)
         elif plan.sparse:
-            out = _sparse(plan, factorization, lin, data, selection, tolerance)
+            out = _sparse(plan, factorization, lin, data, selection, tolerance, inverses)
         else:
             out = _dense(plan, factorization, lin, data, selection, tolerance)
     poses_cov, points_cov, pairs_cov, ok, reason, method = out
@@ -386,7 +383,9 @@ def _marginals_work(
     pairs_cov = torch.where(fixed_pair[..., None, None], 0.0, pairs_cov)
     bad = ~ok
     blocks = {}
-    if data.parameters is not None:
+    if data.parameters is not None and plan.sparse:
+        blocks = _sparse_parameter_blocks(factorization, data, inverses, lin.pose_blocks)
+    elif data.parameters is not None:
         blocks = _parameter_blocks(plan, factorization, data)
         blocks = {k: torch.where(bad[:, None, None, None], math.nan, v) for k, v in blocks.items()}
     poses_cov = torch.where(bad[:, None, None, None], math.nan, poses_cov)
@@ -419,6 +418,43 @@ def _parameter_blocks(plan: LinearPlan, factorization, data: PointMapData) -> di
         slots = layout.slot_index(name, torch.arange(q, device=device))  # (q, spb)
         entries = (6 * slots[..., None] + torch.arange(6, device=device)).reshape(q, -1)[:, :d]
         block = sigma[:, entries[:, :, None], entries[:, None, :]]
+        out[name] = torch.where(layout.fixed[g][..., None, None], 0.0, block)
+    return out
+
+
+def _sparse_parameter_blocks(
+    factorization, data: PointMapData, inverses: dict, like: Tensor
+) -> dict[str, Tensor]:
+    """:func:`_parameter_blocks` for the sparse reduced solver: each block's slots' 6 × 6
+    blocks of S⁻¹ from the selected inverse (the slots of one block are touched by the same
+    terms, so they lie on the factor's pattern; any that does not is solved for), then the
+    block's d entries. Problems without a selected inverse (not ok) get zeros (NaN later)."""
+    layout = data.parameters
+    factor: SparseFactor = factorization.factor
+    B = len(factor.factors)
+    out = {}
+    for g, name in enumerate(layout.names):
+        q, d, per = layout.counts[g], layout.dims[g], layout.slots_per_block(g)
+        slots = layout.slot_index(name, torch.arange(q)).cpu().numpy()  # (q, per), from 0
+        rows = np.repeat(slots, per, axis=1).reshape(-1)  # (q·per·per,) slot i of (i, j)
+        cols = np.tile(slots, (1, per)).reshape(-1)
+        values = np.zeros((B, q, 6 * per, 6 * per))
+        for b, inverse in inverses.items():
+            order = factor.block_order(b)
+            blocks, found = inverse.lookup(order[rows], order[cols])
+            missing = np.flatnonzero(~found)
+            if missing.size:  # off the pattern: block columns of S⁻¹ by solves
+                columns = np.unique(cols[missing])
+                size = 6 * len(order)
+                rhs = np.zeros((size, 6 * columns.size))
+                for c, k in enumerate(columns):
+                    rhs[6 * k : 6 * k + 6, 6 * c : 6 * c + 6] = np.eye(6)
+                X = factor.solve_columns(b, rhs).reshape(len(order), 6, columns.size, 6)
+                where = np.searchsorted(columns, cols[missing])
+                blocks[missing] = X[rows[missing], :, where, :]
+            full = blocks.reshape(q, per, per, 6, 6).transpose(0, 1, 3, 2, 4)
+            values[b] = full.reshape(q, 6 * per, 6 * per)
+        block = torch.from_numpy(values[:, :, :d, :d]).to(like)
         out[name] = torch.where(layout.fixed[g][..., None, None], 0.0, block)
     return out
 
@@ -596,10 +632,13 @@ def _dense(plan: LinearPlan, factorization, lin, data: PointMapData, selection, 
     return poses, points, pairs, ok, reasons, "dense"
 
 
-def _sparse(plan: LinearPlan, factorization, lin, data: PointMapData, selection, tolerance):
+def _sparse(
+    plan: LinearPlan, factorization, lin, data: PointMapData, selection, tolerance, inverses
+):
     """Sparse reduced solver: the blocks of S⁻¹ on its factor's pattern (selected inverse),
     cross blocks outside it by block-column solves; points through the edge pairs that share
-    them (their pose blocks are on the pattern)."""
+    them (their pose blocks are on the pattern). ``inverses`` (a dict) receives each ok
+    problem's selected inverse (the parameter blocks read theirs from it)."""
     pose_index, point_index, pair_index = selection
     B, m, n = factorization.shape
     factor: SparseFactor = factorization.factor
@@ -628,12 +667,17 @@ def _sparse(plan: LinearPlan, factorization, lin, data: PointMapData, selection,
             continue
         inverse, ratios = factor.selected_inverse(b)
         free = ~np.repeat(data.fixed_poses[b].cpu().numpy(), 6)
+        if data.parameters is not None:  # the parameter slots: free blocks' own entries
+            layout = data.parameters
+            slot_free = ~layout.fixed_slots()[b].cpu().numpy()[:, None] & layout.active.numpy()
+            free = np.concatenate((free, slot_free.reshape(-1)))
         r = np.where(free, ratios, 1.0)
         if not bool((r > tolerance).all()):  # NaN ratios fail
             k = int(np.argmin(np.nan_to_num(r, nan=-1.0)))
             ok.append(False)
-            reasons.append(_singular_reason(f"pose {k // 6}", float(r[k]), tolerance))
+            reasons.append(_singular_reason(_describe_slot(k, data), float(r[k]), tolerance))
             continue
+        inverses[b] = inverse
         ok.append(True)
         reasons.append("ok")
         order = factor.block_order(b)
