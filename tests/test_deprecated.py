@@ -1,7 +1,8 @@
 """Old module paths keep working for one release: the same objects, with a DeprecationWarning.
 
 Issue 13 ("Rooms that say what they hold") moved the registration and command-line code; the
-old paths are shims that forward every moved name to its new home (README: "Deprecated names").
+old paths are shims that forward every moved name to its new home (docs/reference.md:
+"Deprecated names").
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ A shim module (``torchslam/icp.py`` and the like) holds no code of its own. It s
 module-level ``__getattr__`` to :func:`moved`, so that reading a moved name from it returns the
 object at its new home (the very same object) and emits a ``DeprecationWarning`` that names the
 new location. Importing a shim warns about nothing; reading a name does, at the caller's line.
-README.md lists the old and the new paths ("Deprecated names").
+docs/reference.md lists the old and the new paths ("Deprecated names").
 
 :func:`callable_tensor` does the same for a method that became a property: the tensor it
 returns may still be called, once, with a warning.

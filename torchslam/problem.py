@@ -428,7 +428,7 @@ class PointMapProblem(nn.Module):
 
 
 # ------------------------------------------------------------------------------------------
-# Deprecated names: they moved to torchslam.objective (kept for one release, see README).
+# Deprecated names: they moved to torchslam.objective (kept for one release, see docs/reference.md).
 
 # Each name of torchslam.objective.data was importable from here.
 _MOVED = {name: (_data, name) for name in _data.__all__}

@@ -82,7 +82,7 @@ EXIT_USAGE = 2
 EXIT_NOT_CERTIFIED = 3
 EXIT_INTERRUPTED = 130
 
-# Loggers of the library (documented in the README's "Logging" paragraph).
+# Loggers of the library (documented in docs/index.md, "Logging").
 LOGGERS = ("torchslam.solver", "torchslam.posegraph")
 
 

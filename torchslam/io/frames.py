@@ -173,7 +173,8 @@ def depth_to_points(
         depth: (H, W) image (numpy array or tensor; integer or float depth units).
         intrinsics: K (3, 3) or (fx, fy, cx, cy), pixels.
         depth_scale: depth units per metre (1000 for millimetres, as Open3D; TUM uses 5000).
-        min_range, max_range: valid depths z in metres (others dropped).
+        min_range: valid depths z are at least this, in metres (others dropped).
+        max_range: and at most this, in metres.
         stride: use every ``stride``-th row and column (pixel coordinates stay the image's).
 
     Returns:

@@ -48,7 +48,10 @@ class ReprojectionTerm(Term):
         intrinsics: known intrinsics instead, (d,) shared or (K, d) / (B, K, d) per
             observation: constants (may require grad).
         group: the parameter group's name (default ``"intrinsics"``).
-        weight, information, loss, valid: as :class:`torchslam.Term` (per observation).
+        weight: as :class:`torchslam.Term` (per observation).
+        information: as :class:`torchslam.Term` (per observation).
+        loss: as :class:`torchslam.Term` (per observation).
+        valid: as :class:`torchslam.Term` (per observation).
 
     Exactly one of ``intrinsics_index`` and ``intrinsics``.
     """

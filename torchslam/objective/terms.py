@@ -981,7 +981,8 @@ class RelativePoseTerm(Term):
         measurements: Z_ij ≈ T_i0 T_j0⁻¹ (or T_i⁻¹ T_j, frame_to_world), (K, 4, 4) or
             (B, K, 4, 4).
         information: Ω_ij in (ω, v) order, (…, K, 6, 6); or ``weight`` (…, K); default 1.
-        loss, valid: as :class:`Term`.
+        loss: as :class:`Term`.
+        valid: as :class:`Term`.
         convention: which pose the solver's poses are: ``"world_to_frame"`` (T_i0, default)
             or ``"frame_to_world"``.
     """
@@ -1044,7 +1045,8 @@ class PosePriorTerm(Term):
         pose_index: the pose of each prior, integer (K,) or (B, K).
         measurements: prior poses Z ≈ T_i0, (K, 4, 4) or (B, K, 4, 4).
         information: Ω in (ω, v) order, (…, K, 6, 6); or ``weight`` (…, K); default 1.
-        loss, valid: as :class:`Term`.
+        loss: as :class:`Term`.
+        valid: as :class:`Term`.
     """
 
     def __init__(
@@ -1109,7 +1111,8 @@ class PointObservationTerm(Term):
         point_index: observed world point j, integer (K,) or (B, K).
         observations: X_k, the point in frame i, (K, 3) or (B, K, 3).
         information: Ω (…, K, 3, 3); or ``weight`` (…, K); default 1.
-        loss, valid: as :class:`Term`.
+        loss: as :class:`Term`.
+        valid: as :class:`Term`.
     """
 
     def __init__(
