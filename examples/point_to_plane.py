@@ -119,7 +119,7 @@ def build_problem(
 
 def pose_error(scene: SyntheticScene, problem: PointMapProblem) -> tuple[float, float]:
     """Largest rotation error (degrees) and sensor position error (metres) over the poses."""
-    rotation, translation = pose_errors(problem.poses().detach(), scene.poses_gt)
+    rotation, translation = pose_errors(problem.poses.detach(), scene.poses_gt)
     return float(rotation.max()), float(translation.max())
 
 

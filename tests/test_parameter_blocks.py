@@ -559,3 +559,16 @@ def test_implicit_gradient_of_the_initial_parameter_blocks():
         minus = solve(start - e, "none").parameters["intrinsics"][0, [0, 2], 0].sum()
     numeric = float(plus - minus) / (2 * h)
     assert float(grad[0, 1, 0]) == pytest.approx(numeric, rel=1e-4, abs=1e-8)
+
+
+@pytest.mark.parametrize("reduced", ["dense", "sparse"])
+def test_intrinsics_covariance_of_a_free_gauge_is_nan(reduced):
+    # no camera and no point fixed: the similarity gauge is free, H singular; the problem is
+    # reported and every block, parameter blocks included, is NaN on either reduced solver
+    p = problem_from_bal(_scene(C=4, N=30, seed=9))
+    r = torchslam.solve(p, TIGHT)
+    config = dataclasses.replace(TIGHT, reduced_solver=reduced)
+    cov = marginal_covariances(p, r, points=False, config=config)
+    assert not bool(cov.ok[0]) and "rank deficient" in cov.reason[0]
+    assert bool(cov.poses[0, 1:].isnan().all())
+    assert bool(cov.parameters["intrinsics"][0].isnan().all())

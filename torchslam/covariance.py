@@ -387,7 +387,7 @@ def _marginals_work(
         blocks = _sparse_parameter_blocks(factorization, data, inverses, lin.pose_blocks)
     elif data.parameters is not None:
         blocks = _parameter_blocks(plan, factorization, data)
-        blocks = {k: torch.where(bad[:, None, None, None], math.nan, v) for k, v in blocks.items()}
+    blocks = {k: torch.where(bad[:, None, None, None], math.nan, v) for k, v in blocks.items()}
     poses_cov = torch.where(bad[:, None, None, None], math.nan, poses_cov)
     points_cov = torch.where(bad[:, None, None, None], math.nan, points_cov)
     pairs_cov = torch.where(bad[:, None, None, None], math.nan, pairs_cov)

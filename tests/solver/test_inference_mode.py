@@ -6,6 +6,7 @@ that a later autograd solve can save for its backward and a user can edit in pla
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import pytest
 import torch
@@ -115,24 +116,25 @@ def test_the_callback_runs_outside_inference_mode():
     assert w.grad is not None
 
 
-def test_backward_through_solve_points_to_solve_differentiable():
-    # Observations that require grad tell that the caller wants gradients of the solution:
-    # a backward through solve's result says to use solve_differentiable (issue 28 §4), where
-    # torch alone would say "does not require grad".
+def test_solve_with_data_that_require_grad_points_to_solve_differentiable():
+    # Weights that require grad tell that the caller may want gradients of the solution: solve
+    # warns, naming the tensor and solve_differentiable (issue 28 §4), instead of leaving the
+    # user to torch's generic "does not require grad" at the backward. Its result stays plain:
+    # it warm-starts a differentiable solve, whose gradients are then the usual ones.
     scene, init = drifted(5, 30)
     weights = torch.ones(scene.valid.shape, dtype=torch.float64, requires_grad=True)
     problem = problem_from(scene, init.poses, init.points, weights=weights)
-    result = torchslam.solve(problem)
-    for value in (result.poses, result.points, result.final_cost):
-        assert value.requires_grad
-        with pytest.raises(RuntimeError, match=r"solve_differentiable\(problem\.pose_tangent"):
-            value.sum().backward()
-    # the values are those of a solve without the gradient request, bit for bit
+    with pytest.warns(UserWarning, match=r"data\.weights requires grad.*solve_differentiable"):
+        result = torchslam.solve(problem)
+    assert not result.points.requires_grad
+    result.points.numpy()
     plain = problem_from(scene, init.poses, init.points, weights=weights.detach())
-    reference = torchslam.solve(plain)
-    assert not reference.pose_tangent.requires_grad
-    assert torch.equal(result.pose_tangent.detach(), reference.pose_tangent)
-    with torch.no_grad():  # no gradient wanted: plain tensors
-        assert not torchslam.solve(
-            problem_from(scene, init.poses, init.points, weights=weights)
-        ).points.requires_grad
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        reference = torchslam.solve(plain)
+        with torch.no_grad():
+            torchslam.solve(problem_from(scene, init.poses, init.points, weights=weights))
+    assert torch.equal(result.pose_tangent, reference.pose_tangent)
+    warm = torchslam.solve_differentiable(result.pose_tangent, result.points, problem.data)
+    (grad,) = torch.autograd.grad(warm.points.square().sum(), weights)
+    assert torch.isfinite(grad).all()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from collections.abc import Callable, Mapping
 
 import torch
@@ -213,49 +214,33 @@ def solve(
         problem.points.copy_(result.points)
         for name, value in result.parameters.items():
             problem.parameter_blocks[name].copy_(value)
-    anchor = _gradient_wanted(problem.data)
-    if anchor is not None:
-        _mark_not_differentiable(result, anchor)
+    wanted = _gradient_wanted(problem.data)
+    if wanted is not None:
+        # The result's tensors stay plain (they warm-start a differentiable solve, convert to
+        # numpy, feed covariances); the hint comes now, before a backward would fail with
+        # torch's generic "does not require grad".
+        warnings.warn(
+            f"solve: {wanted} requires grad, but solve iterates on detached values: its result "
+            "carries no gradient. To backpropagate through the solve use torchslam."
+            "solve_differentiable(problem.pose_tangent, problem.points, problem.data); to "
+            "silence this, solve under torch.no_grad()",
+            UserWarning,
+            stacklevel=2,
+        )
     return result
 
 
-def _gradient_wanted(data: PointMapData) -> Tensor | None:
-    """A constant of ``data`` that requires grad (observations, weights, information, a
-    term's tensors) when grad mode is on: the caller may expect gradients of the solution
-    with respect to it; None otherwise."""
+def _gradient_wanted(data: PointMapData) -> str | None:
+    """The name of a constant of ``data`` that requires grad (observations, weights,
+    information, a term's tensors) when grad mode is on: the caller may expect gradients of
+    the solution with respect to it; None otherwise."""
     if not torch.is_grad_enabled():
         return None
-    constants = [data.observations, data.weights, data.information]
-    for term in data.terms:
-        constants.extend(term.tensors().values())
-    return next((t for t in constants if t is not None and t.requires_grad), None)
-
-
-class _NotDifferentiable(torch.autograd.Function):
-    """The identity on ``value``, tied to ``anchor`` so that a backward reaches it and says
-    what to use instead of torch's generic "does not require grad"."""
-
-    @staticmethod
-    def forward(ctx, anchor: Tensor, value: Tensor) -> Tensor:
-        return value.clone()
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[None, None]:
-        raise RuntimeError(
-            "solve: the solution carries no gradient (solve iterates on detached values); "
-            "to backpropagate through the solve use torchslam.solve_differentiable("
-            "problem.pose_tangent, problem.points, problem.data) (the implicit function "
-            "theorem at the optimum, or the unrolled iterations)"
-        )
-
-
-def _mark_not_differentiable(result: SolveResult, anchor: Tensor) -> None:
-    """Tie the solution's tensors (poses, points, parameter blocks, final cost) to
-    ``anchor`` through :class:`_NotDifferentiable`: a backward through them raises with a
-    pointer to :func:`torchslam.solve_differentiable`."""
-    result.pose_tangent = _NotDifferentiable.apply(anchor, result.pose_tangent)
-    result.points = _NotDifferentiable.apply(anchor, result.points)
-    result.final_cost = _NotDifferentiable.apply(anchor, result.final_cost)
-    result.parameters = {
-        name: _NotDifferentiable.apply(anchor, value) for name, value in result.parameters.items()
+    constants = {
+        "data.observations": data.observations,
+        "data.weights": data.weights,
+        "data.information": data.information,
     }
+    for k, term in enumerate(data.terms):
+        constants.update({f"data.terms[{k}] {n!r}": t for n, t in term.tensors().items()})
+    return next((n for n, t in constants.items() if t is not None and t.requires_grad), None)
