@@ -39,17 +39,26 @@ def _camera_point(T: Tensor, X: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return P, dP_dxi, R
 
 
+def _columns(x: Tensor, shape: torch.Size, k: int) -> tuple[Tensor, ...]:
+    """The k components of ``x`` (..., k) broadcast to ``shape``, each a contiguous (*shape)
+    tensor: elementwise kernels on whole columns run several times faster than on the strided
+    entries of (..., k) views."""
+    return tuple(x.expand(*shape, k).movedim(-1, 0).contiguous().unbind(0))
+
+
 def _snavely_prediction(T: Tensor, X: Tensor, intrinsics: Tensor):
-    """The columns of the Snavely projection (each (...,)): P = R X + t, 1/z, p, r², ρ, and the
-    pixels u = f ρ p; one formula for :func:`snavely_project` and :func:`snavely_jacobians`
-    (the same bits). Written on columns: torch's elementwise kernels on (..., 3)-shaped
-    broadcasts are several times slower than on whole columns."""
-    R, t = T[..., :3, :3], T[..., :3, 3]
-    x0, x1, x2 = X.unbind(-1)
-    P = [R[..., k, 0] * x0 + R[..., k, 1] * x1 + R[..., k, 2] * x2 + t[..., k] for k in range(3)]
+    """The columns of the Snavely projection (each (...,)): R (3 × 3 nested, by row), X, 1/z,
+    p, f, k1, k2, r², ρ, f ρ, for P = R X + t and the pixels u = f ρ p; one formula for
+    :func:`snavely_project` and :func:`snavely_jacobians` (the same bits). Written on
+    contiguous columns (:func:`_columns`)."""
+    shape = torch.broadcast_shapes(T.shape[:-2], X.shape[:-1], intrinsics.shape[:-1])
+    rows = _columns(T[..., :3, :].reshape(*T.shape[:-2], 12), shape, 12)
+    R = [rows[4 * k : 4 * k + 3] for k in range(3)]
+    x0, x1, x2 = _columns(X, shape, 3)
+    P = [R[k][0] * x0 + R[k][1] * x1 + R[k][2] * x2 + rows[4 * k + 3] for k in range(3)]
     inv = 1.0 / P[2]
     px, py = -P[0] * inv, -P[1] * inv
-    f, k1, k2 = intrinsics.unbind(-1)
+    f, k1, k2 = _columns(intrinsics, shape, 3)
     r2 = px * px + py * py
     rho = 1.0 + r2 * (k1 + k2 * r2)
     f_rho = f * rho
@@ -82,7 +91,7 @@ def snavely_jacobians(
     rows = []
     for a1, a2 in ((a11, a12), (a21, a22)):
         c = a1 * px + a2 * py
-        g = [-(a1 * R[..., 0, k] + a2 * R[..., 1, k] + c * R[..., 2, k]) * inv for k in range(3)]
+        g = [-(a1 * R[0][k] + a2 * R[1][k] + c * R[2][k]) * inv for k in range(3)]
         cross = (x1 * g[2] - x2 * g[1], x2 * g[0] - x0 * g[2], x0 * g[1] - x1 * g[0])
         rows.append((*cross, *g))
     shape = px.shape
