@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchslam.solver import segments
-from torchslam.solver.segments import segment_sum
+from torchslam.solver.segments import segment_sum, unique_rows
 
 
 def _reference(index, rows, values):
@@ -61,3 +61,18 @@ def test_gradients_flow_through_the_fallback():
     out = segment_sum(index, rows, values)
     (out * torch.arange(rows, dtype=torch.float64)[:, None]).sum().backward()
     assert torch.equal(values.grad, (index.to(torch.float64)[:, None]).expand(N, 3))
+
+
+@pytest.mark.parametrize("high", [2, 300, 1 << 40])
+def test_unique_rows_matches_torch_unique(high):
+    """Rows folded into one key while it fits, re-ranked when the next column would overflow
+    (entries up to 2⁴⁰: a re-rank every column): the same rows, order and inverse as
+    ``torch.unique(dim=0)``."""
+    generator = torch.Generator().manual_seed(high % 1000)
+    x = torch.randint(0, high, (400, 7), generator=generator)
+    x[200:] = x[:200]  # duplicates
+    rows, inverse = unique_rows(x)
+    expected, expected_inverse = torch.unique(x, dim=0, return_inverse=True)
+    assert torch.equal(rows, expected)
+    assert torch.equal(inverse, expected_inverse)
+    assert torch.equal(rows[inverse], x)

@@ -551,8 +551,15 @@ def instance_blocks(
     if weight is not None:
         Jt = weight[..., None, None] * Jt
     JtJ = matmul(Jt, J) if products else None
-    # J̃ᵀr̃ as the row r̃ᵀJ̃ (no transposed copy of J̃).
-    Jtr = matmul(r[..., None, :], J)[..., 0, :]
+    # J̃ᵀr̃ as the row r̃ᵀJ̃ (no transposed copy of J̃); for a short residual (a pixel, a
+    # 3-vector) as d broadcast rows, faster than stacked products of inner size d.
+    d = r.shape[-1]
+    if 1 <= d <= 4:
+        Jtr = r[..., 0, None] * J[..., 0, :]
+        for k in range(1, d):
+            Jtr = Jtr + r[..., k, None] * J[..., k, :]
+    else:
+        Jtr = matmul(r[..., None, :], J)[..., 0, :]
     return cost, r, J, weight, JtJ, Jtr if weight is None else weight[..., None] * Jtr
 
 
@@ -824,8 +831,11 @@ def linearize_terms(
             Jt = scale[..., None, None] * Jt
         point_block = coupling = None
         if has_point:
-            point_block = matmul(Jt[..., P:, :], Jw[..., P:])
-            coupling = matmul(Jt[..., :P, :], Jw[..., P:])
+            # J̃_Xᵀ·w J̃ in one small product (3 rows: the point's), then its columns: the
+            # point block J̃_Xᵀ J̃_X and the coupling (J̃_Xᵀ J̃_slots)ᵀ.
+            products = matmul(Jt[..., P:, :], Jw)
+            point_block = products[..., P:]
+            coupling = products[..., :P].transpose(-1, -2)
         grouping = term_grouping(term)
         if grouping is not None and not torch.is_grad_enabled():
             # Σ J̃ᵀJ̃·w per signature by GEMM pieces (TermGrouping), then the slot blocks.

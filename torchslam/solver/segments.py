@@ -109,14 +109,23 @@ def _ones_matrix(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
 
 def unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     """(unique rows in lexicographic order, inverse) of a long (R, c) tensor with entries
-    ≥ 0: the rows ranked one column at a time (rank · (max + 1) + column, re-ranked by a 1-D
-    ``torch.unique``), which stays below R·(max + 1) (no overflow), c sorts of R keys;
-    planning only (``torch.unique(dim=0)`` compares rows one at a time)."""
+    ≥ 0: the columns folded into one key, key · (max + 1) + column, as long as its bound
+    stays below 2⁶² (no overflow), then re-ranked by a 1-D ``torch.unique`` (the rank is below
+    R) and folded on: a few sorts of R keys; planning only (``torch.unique(dim=0)`` compares
+    rows one at a time)."""
     rank = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
     if x.shape[0] == 0:
         return x, rank
+    if x.shape[1] == 0:
+        return x[:1], rank
+    key, bound = rank, 1  # key < bound
     for column in x.unbind(1):
-        _, rank = torch.unique(rank * (int(column.max()) + 1) + column, return_inverse=True)
+        width = int(column.max()) + 1
+        if bound * width >= 1 << 62:
+            _, key = torch.unique(key, return_inverse=True)
+            bound = int(key.max()) + 1
+        key, bound = key * width + column, bound * width
+    _, rank = torch.unique(key, return_inverse=True)
     count = int(rank.max()) + 1
     first = torch.full((count,), x.shape[0], dtype=torch.long, device=x.device)
     first = first.scatter_reduce(0, rank, torch.arange(x.shape[0], device=x.device), "amin")
