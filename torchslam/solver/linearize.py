@@ -831,11 +831,11 @@ def linearize_terms(
             Jt = scale[..., None, None] * Jt
         point_block = coupling = None
         if has_point:
-            # J̃_Xᵀ·w J̃ in one small product (3 rows: the point's), then its columns: the
-            # point block J̃_Xᵀ J̃_X and the coupling (J̃_Xᵀ J̃_slots)ᵀ.
-            products = matmul(Jt[..., P:, :], Jw)
-            point_block = products[..., P:]
-            coupling = products[..., :P].transpose(-1, -2)
+            # w J̃ᵀJ̃_X in one small product (3 columns: the point's), then its rows: the
+            # couplings J̃_slotsᵀ J̃_X and the point block J̃_Xᵀ J̃_X.
+            products = matmul(Jt, Jw[..., P:])
+            point_block = products[..., P:, :]
+            coupling = products[..., :P, :]
         grouping = term_grouping(term)
         if grouping is not None and not torch.is_grad_enabled():
             # Σ J̃ᵀJ̃·w per signature by GEMM pieces (TermGrouping), then the slot blocks.
