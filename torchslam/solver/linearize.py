@@ -715,13 +715,30 @@ class TermAccumulator:
         B, m, n = self.B, self.m, self.n
         K, a = term.slot_index.shape[1:]
         P = 6 * a
-        slots = self.batch[..., None] * m + term.slot_index
         self.cost = self.cost + cost
-        self.gradient.index_add_(0, slots.reshape(-1), gradient[..., :P].reshape(-1, 6))
+        # Sums per slot and per point over index tensors cached on the term, so that
+        # segment_sum keeps their sparse matrices across iterations.
+        slots = _cached(
+            term,
+            f"_flat_slots_{m}",
+            (term.slot_index,),
+            lambda: (self.batch[..., None] * m + term.slot_index).reshape(-1),
+        )
+        self.gradient += segment_sum(slots, B * m, gradient[..., :P].reshape(-1, 6))
         if term.has_point:
-            point_slots = (self.batch * n + term.point_index).reshape(-1)
-            self.point_gradient.index_add_(0, point_slots, gradient[..., P:].reshape(-1, 3))
-            self.point_diagonal.index_add_(0, point_slots, point_block.reshape(-1, 3, 3))
+            point_slots = _cached(
+                term,
+                f"_flat_points_{n}",
+                (term.point_index,),
+                lambda: (self.batch * n + term.point_index).reshape(-1),
+            )
+            # the point's gradient and block in one sum: (B·K, 3 + 9)
+            values = torch.cat(
+                (gradient[..., P:].reshape(-1, 3), point_block.reshape(-1, 9)), -1
+            )
+            sums = segment_sum(point_slots, B * n, values)
+            self.point_gradient += sums[:, :3]
+            self.point_diagonal += sums[:, 3:].reshape(-1, 3, 3)
             self.couplings.append(coupling.reshape(B, K * a, 6, 3))
 
     def add_blocks(self, term: Term, blocks) -> None:
