@@ -732,13 +732,10 @@ class TermAccumulator:
                 (term.point_index,),
                 lambda: (self.batch * n + term.point_index).reshape(-1),
             )
-            # the point's gradient and block in one sum: (B·K, 3 + 9)
-            values = torch.cat(
-                (gradient[..., P:].reshape(-1, 3), point_block.reshape(-1, 9)), -1
-            )
-            sums = segment_sum(point_slots, B * n, values)
-            self.point_gradient += sums[:, :3]
-            self.point_diagonal += sums[:, 3:].reshape(-1, 3, 3)
+            self.point_gradient += segment_sum(point_slots, B * n, gradient[..., P:].reshape(-1, 3))
+            self.point_diagonal += segment_sum(
+                point_slots, B * n, point_block.reshape(-1, 9)
+            ).reshape(-1, 3, 3)
             self.couplings.append(coupling.reshape(B, K * a, 6, 3))
 
     def add_blocks(self, term: Term, blocks) -> None:
