@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
                         **_errors(poses, reference), "ms_per_frame": value["ms_per_frame"],
                         "reading": False,
                     })  # fmt: skip
-            _print([r for r in rows if r["sequence"] == name and r["threads"] == t])
+            _print([r for r in rows if r["sequence"] == name and r.get("threads") == t])
             slam_and_result = record.pop("slam")
             fits = loop_fits(*slam_and_result, reference) if t == threads[0] else []
             if fits:
