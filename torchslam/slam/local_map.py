@@ -64,13 +64,20 @@ class LocalMap:
         newest_first = list(reversed(self._keyframes))
         points = np.concatenate([k.points for k in newest_first])
         normals = np.concatenate([k.normals for k in newest_first])
-        cells = np.floor(points / self.voxel).astype(np.int64)
-        cells -= cells.min(0)
-        extent = cells.max(0) + 1
-        key = (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
-        # One point per voxel, the first (newest) one: np.unique's first occurrence.
-        _, first = np.unique(key, return_index=True)
-        first.sort()
+        if points.shape[0] == 0:  # keyframes without points: an empty map, no tree
+            self.points = torch.zeros(0, 3, dtype=torch.float64)
+            self.normals = torch.zeros(0, 3, dtype=torch.float64)
+            self.tree = None
+            return
+        # voxel indices as three contiguous rows (reductions over a (N, 3) array's columns
+        # are several times slower), offset to 0 … extent − 1, then one key per voxel
+        cells = np.floor(points / self.voxel).astype(np.int64).T.copy()
+        low = cells.min(1)
+        extent = cells.max(1) - low + 1
+        x, y, z = (cells[k] - low[k] for k in range(3))
+        key = (x * extent[1] + y) * extent[2] + z
+        # One point per voxel, the first (newest) one.
+        first = _first_occurrences(key)
         points, normals = points[first], normals[first]
         self.points = torch.from_numpy(np.ascontiguousarray(points))
         self.normals = torch.from_numpy(np.ascontiguousarray(normals))
@@ -79,3 +86,17 @@ class LocalMap:
     def state(self) -> tuple[Tensor, Tensor]:
         """The merged map: points and unit normals, (M, 3) each, world frame."""
         return self.points, self.normals
+
+
+def _first_occurrences(key: np.ndarray) -> np.ndarray:
+    """The index of the first occurrence of every distinct value of ``key`` (N,), ascending:
+    ``np.unique(key, return_index=True)[1]`` sorted, from an unstable sort (the smallest
+    index per run of equal keys), about twice as fast as np.unique's stable one."""
+    if key.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(key)
+    ordered = key[order]
+    starts = np.flatnonzero(np.concatenate(([True], ordered[1:] != ordered[:-1])))
+    first = np.minimum.reduceat(order, starts)
+    first.sort()
+    return first
