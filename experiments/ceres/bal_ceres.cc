@@ -106,9 +106,11 @@ int main(int argc, char** argv) {
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   std::printf(
       "{\"initial_cost\": %.10e, \"final_cost\": %.10e, \"iterations\": %d, "
+      "\"linear_solves\": %d, \"jacobian_evaluations\": %d, "
       "\"seconds\": %.6f, \"solver_seconds\": %.6f, \"termination\": \"%s\"}\n",
       summary.initial_cost, summary.final_cost,
-      static_cast<int>(summary.iterations.size()) - 1, seconds, summary.total_time_in_seconds,
+      static_cast<int>(summary.iterations.size()) - 1, summary.num_linear_solves,
+      summary.num_jacobian_evaluations, seconds, summary.total_time_in_seconds,
       ceres::TerminationTypeToString(summary.termination_type));
   return summary.IsSolutionUsable() ? 0 : 1;
 }
