@@ -376,3 +376,25 @@ def test_point_block_inverse_matches_lapack_and_flags_failures():
     assert not bool(cholesky_ok.any())
     assert torch.equal(V_inv[:5], eye.expand(5, 3, 3))
     assert torch.allclose(V_inv[5], 0.5 * eye, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "scale"),
+    [
+        (torch.float32, 1e-14),
+        (torch.float32, 1e13),
+        (torch.float64, 1e-150),
+        (torch.float64, 1e150),
+    ],
+)
+def test_point_block_inverse_does_not_depend_on_the_blocks_scale(dtype, scale):
+    """A well-conditioned SPD block scaled far from 1 (its determinant, the cube of the scale,
+    would underflow or overflow the dtype): the inverse is still found and equals LAPACK's to
+    the dtype's accuracy (condition ≈ 10: 1e3·eps leaves ample margin)."""
+    V = torch.tensor([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]], dtype=torch.float64)
+    V = (V * scale).to(dtype)
+    V_inv, ok = plan_module.spd_inverse_3x3(V[None])
+    reference = torch.linalg.inv(V.double())
+    assert bool(ok.all())
+    error = (V_inv[0].double() - reference).abs().max() / reference.abs().max()
+    assert float(error) < 1e3 * torch.finfo(dtype).eps

@@ -364,11 +364,17 @@ def spd_inverse_3x3(V: Tensor) -> tuple[Tensor, Tensor]:
     """(V⁻¹ (..., 3, 3), ok (...)) of symmetric 3×3 blocks V (..., 3, 3), from their lower
     triangle as a Cholesky factorization reads it: the adjugate over the determinant, written
     on the entries (a few elementwise operations on whole columns, several times faster than
-    batched LAPACK on 3×3 blocks). ``ok`` is Sylvester's test that V is positive definite
-    (its leading minors v₀₀, v₀₀v₁₁ − v₁₀² and det V positive and finite); where it fails
+    batched LAPACK on 3×3 blocks), of V scaled by its largest diagonal entry s (the entries of
+    a positive definite V/s are at most 1, so its cofactors and determinant neither overflow
+    nor underflow with V's scale, in float32 too). ``ok`` is Sylvester's test that V is
+    positive definite (the leading minors of V/s positive) with a finite V⁻¹; where it fails
     V⁻¹ is I."""
-    a00, a10, a11 = V[..., 0, 0], V[..., 1, 0], V[..., 1, 1]
-    a20, a21, a22 = V[..., 2, 0], V[..., 2, 1], V[..., 2, 2]
+    diagonal = (V[..., 0, 0], V[..., 1, 1], V[..., 2, 2])
+    scale = torch.maximum(torch.maximum(diagonal[0], diagonal[1]), diagonal[2])
+    usable = (scale > 0) & torch.isfinite(scale)
+    reciprocal = 1.0 / torch.where(usable, scale, 1.0)
+    a00, a11, a22 = (d * reciprocal for d in diagonal)
+    a10, a20, a21 = (V[..., i, j] * reciprocal for i, j in ((1, 0), (2, 0), (2, 1)))
     c00 = a11 * a22 - a21 * a21
     c10 = a21 * a20 - a10 * a22
     c20 = a10 * a21 - a11 * a20
@@ -376,10 +382,12 @@ def spd_inverse_3x3(V: Tensor) -> tuple[Tensor, Tensor]:
     c21 = a10 * a20 - a00 * a21
     c22 = a00 * a11 - a10 * a10
     det = a00 * c00 + a10 * c10 + a20 * c20
-    ok = (a00 > 0) & (c22 > 0) & (det > 0) & torch.isfinite(det)
-    inv = 1.0 / torch.where(ok, det, 1.0)
-    e00, e10, e20, e11, e21, e22 = (c * inv for c in (c00, c10, c20, c11, c21, c22))
+    # V⁻¹ = adj(V/s) / (det(V/s) · s)
+    factor = reciprocal / torch.where(det > 0, det, 1.0)
+    ok = usable & (a00 > 0) & (c22 > 0) & (det > 0) & torch.isfinite(factor)
+    e00, e10, e20, e11, e21, e22 = (c * factor for c in (c00, c10, c20, c11, c21, c22))
     V_inv = torch.stack((e00, e10, e20, e10, e11, e21, e20, e21, e22), -1)
+    ok = ok & torch.isfinite(V_inv).all(-1)
     eye = _series.eye(3, V.dtype, V.device).reshape(9)
     return torch.where(ok[..., None], V_inv, eye).reshape(*V.shape), ok
 
