@@ -116,8 +116,6 @@ def unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     rank = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
     if x.shape[0] == 0:
         return x, rank
-    if x.shape[1] == 0:
-        return x[:1], rank
     key, bound = rank, 1  # key < bound
     for column in x.unbind(1):
         width = int(column.max()) + 1
