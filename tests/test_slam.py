@@ -9,6 +9,7 @@ that noise and the 0.25 m voxel, not from this machine's figures.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -164,6 +165,13 @@ def test_bad_config_and_arguments():
         SLAM().finish()
     with pytest.raises(ValueError, match="every"):
         run_sequence([torch.zeros(5, 3)], every=0)
+    for name in ("icp_step_voxels", "icp_step_deg"):
+        for value in (0.0, -0.01, math.inf):
+            with pytest.raises(ValueError, match=f"SLAMConfig: argument '{name}'"):
+                SLAMConfig(**{name: value})
+    # depth: a map on half the frame's voxel, LiDAR keyframes on the frame's voxel
+    assert SLAMConfig.for_sensor("depth").map_voxel_fraction == 0.5
+    assert SLAMConfig.for_sensor("lidar").map_voxel_fraction == 1.0
 
 
 def _depth_folder(tmp_path, K_text: str | None = "585 0 320\n0 585 240\n0 0 1\n"):
@@ -172,7 +180,7 @@ def _depth_folder(tmp_path, K_text: str | None = "585 0 320\n0 585 240\n0 0 1\n"
     folder = tmp_path / "depth"
     folder.mkdir()
     for k in range(2):
-        iio.imwrite(folder / f"frame-{k:06d}.depth.png", np.full((48, 64), 1500, np.uint16))
+        iio.imwrite(folder / f"frame-{k:06d}.depth.png", np.full((96, 128), 1500, np.uint16))
     if K_text is not None:
         (folder / "camera-intrinsics.txt").write_text(K_text)
     return folder

@@ -391,8 +391,8 @@ class Odometry:
             gate_scale=None,
             kernel="cauchy",
             kernel_scale=gate * cfg.kernel_fraction,
-            rotation_tolerance_deg=0.01,
-            translation_tolerance=0.01 * cfg.voxel,
+            rotation_tolerance_deg=cfg.icp_step_deg,
+            translation_tolerance=cfg.icp_step_voxels * cfg.voxel,
         )
         target, normals = self.map.state()
         batch = initial if initial.dim() == 3 else initial[None]
