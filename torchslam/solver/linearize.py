@@ -462,7 +462,7 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
         if whitening is None:
             whitening = whitening_factors(data)
     cost, rw, Jw, scale, JtJ, Jtr = instance_blocks(
-        r, J, data.valid, whitening, data.masked_weights(), data.loss
+        r, J, data.valid, whitening, data.masked_weights(), data.loss, data.all_valid()
     )
     pose_index, point_index = data.flat_pose_index, data.flat_point_index
     U = segment_sum(pose_index, B * m, JtJ[..., :6, :6].reshape(-1, 6, 6))
@@ -540,11 +540,15 @@ def instance_blocks(
         residual_scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
         if weight is not None:
             alpha_over_s = alpha_over_s * weight
-        projector = alpha_over_s[..., None, None] * r[..., :, None]
-        J = torch.sqrt(rho1)[..., None, None] * (J - projector @ (r[..., None, :] @ J))
+        if bool((alpha_over_s != 0).any()):
+            projector = alpha_over_s[..., None, None] * r[..., :, None]
+            J = torch.sqrt(rho1)[..., None, None] * (J - projector @ (r[..., None, :] @ J))
+        else:  # α = 0 everywhere (e.g. Huber, Cauchy outside the knee): √ρ' scaling alone
+            J = torch.sqrt(rho1)[..., None, None] * J
         r = residual_scale[..., None] * r
-        r = torch.where(valid_r, r, torch.zeros_like(r))
-        J = torch.where(valid_J, J, torch.zeros_like(J))
+        if not all_valid:
+            r = torch.where(valid_r, r, torch.zeros_like(r))
+            J = torch.where(valid_J, J, torch.zeros_like(J))
     # w on one side only: a (c × d) pass instead of a (c × c) one (J̃ᵀJ̃·w is then symmetric
     # to round-off only).
     Jt = J.transpose(-1, -2)

@@ -814,18 +814,62 @@ class LinearPlan:
             C = instances.points_part(W, V_inv.reshape(-1, 3, 3), self.chunk_size, B)
             factor = self._factor_dense(U, lin, -C)
             return Factorization(factor, elim, point_ok, self.shape)
-        pairs = self._pairs()
         upper = self._upper(U, lin)
-        if pairs.num_pairs:
-            Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
-            slots = self.pair_slots if self.pair_slots is not None else pairs.key
-            for start in range(0, pairs.num_pairs, self.chunk_size):
-                sl = slice(start, start + self.chunk_size)
-                prod = Y[pairs.first[sl]] @ W[pairs.second[sl]].transpose(-1, -2)
-                mirror = pairs.same_pose[sl] & ~pairs.self_pair[sl]
-                prod = torch.where(mirror[:, None, None], prod + prod.transpose(-1, -2), prod)
-                upper = upper.index_add(0, slots[sl], -prod)
+        if self._pairs().num_pairs:
+            upper = self._subtract_pair_products(upper, W, V_inv, point_slot)
         return Factorization(self.reduced.factor(upper, None, definite), elim, point_ok, self.shape)
+
+    def _subtract_pair_products(
+        self, upper: Tensor, W: Tensor, V_inv: Tensor, point_slot: Tensor
+    ) -> Tensor:
+        """``upper`` (num_slots, 6, 6) less the points' part Σ_j W_ij V_j⁻¹ W_kjᵀ of every
+        block (i, k), from the edge couplings W (E, 6, 3) and V⁻¹ (B·n, 3, 3): the pairs of
+        each block cut into pieces of ``PIECE`` (:meth:`_pair_pieces`), so that a piece's sum
+        Σ_p Y_p W_pᵀ (Y = W V⁻¹) is one (6 × 3·PIECE)·(3·PIECE × 6) product of a batched GEMM,
+        ``PIECES_PER_STEP`` pieces at a time (no per-pair (pairs, 6, 6) scratch). A pair of
+        two edges of one pose (a diagonal block, not a self pair) adds Y_a W_bᵀ + its
+        transpose."""
+        first, second, slot, mirror = self._pair_pieces()
+        Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
+        zero = W.new_zeros(1, 3, 6)
+        # the blocks transposed (E + 1, 3, 6), a zero block last for the padding: a piece's
+        # gathered rows are then its (3·PIECE × 6) operand as they lie
+        Yt = torch.cat((Y.transpose(1, 2), zero))
+        Wt = torch.cat((W.transpose(1, 2), zero))
+        graph = torch.is_grad_enabled() and (W.requires_grad or V_inv.requires_grad)
+        for start in range(0, slot.numel(), PIECES_PER_STEP):
+            sl = slice(start, start + PIECES_PER_STEP)
+            left = Yt[first[sl]].reshape(-1, 3 * PIECE, 6)
+            right = Wt[second[sl]].reshape(-1, 3 * PIECE, 6)
+            product = torch.bmm(left.transpose(1, 2), right)
+            product = torch.where(
+                mirror[sl, None, None], product + product.transpose(1, 2), product
+            )
+            if graph:
+                upper = upper.index_add(0, slot[sl], product, alpha=-1.0)
+            else:
+                upper.index_add_(0, slot[sl], product, alpha=-1.0)
+        return upper
+
+    def _pair_pieces(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The edge pairs cut into pieces of ``PIECE`` pairs of one upper block and kind
+        (mirrored or not): first and second edge of each pair (Q, PIECE) (the zero block E on
+        the padding), the block's slot (Q,) and whether the piece is mirrored (Q,); built once
+        per plan."""
+
+        def compute() -> tuple[Tensor, Tensor, Tensor, Tensor]:
+            pairs = self._pairs()
+            slots = self.pair_slots if self.pair_slots is not None else pairs.key
+            blocks, block = torch.unique(slots, return_inverse=True)
+            mirror = pairs.same_pose & ~pairs.self_pair
+            items, group = pieces(2 * block + mirror.long(), 2 * blocks.numel(), PIECE, -1)
+            padding = items < 0
+            edges = self.edges.pose_index.numel()
+            first = torch.where(padding, edges, pairs.first[items.clamp_min(0)])
+            second = torch.where(padding, edges, pairs.second[items.clamp_min(0)])
+            return first, second, blocks[group // 2], group % 2 == 1
+
+        return self._kept("pair_pieces", compute)
 
     def coupling_gemm_pays(self) -> bool:
         """Whether :meth:`factorize_coupling_gemm` applies (Schur method, dense reduced
