@@ -153,6 +153,28 @@ def test_refine_keeps_exact_poses_nearly_fixed(critter):
     assert cost_estimate <= cost_truth * (1 + 1e-6)
 
 
+def test_refine_takes_given_normals_and_skips_covariances(critter):
+    truth, clouds = critter
+    small = [icp.voxel_downsample(c, VOXEL) for c in clouds[:4]]
+    cfg = config(rounds=1)
+    normals = [icp.estimate_normals(c, min(cfg.normal_neighbors, len(c))) for c in small]
+    default = registration.refine(small, truth[:4], cfg)
+    # the normals refine would estimate, some flipped (the information n nᵀ ignores the
+    # sign): the same solve to round-off
+    flipped = [n if k % 2 else -n for k, n in enumerate(normals)]
+    given = registration.refine(small, truth[:4], cfg, normals=flipped, covariances=False)
+    assert given.pose_covariances is None and default.pose_covariances is not None
+    torch.testing.assert_close(given.poses, default.poses, rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"refine: argument 'normals' must hold one tensor"):
+        registration.refine(small, truth[:4], cfg, normals=normals[:2])
+    with pytest.raises(ValueError, match=r"refine: argument 'normals\[1\]' must have the shape"):
+        registration.refine(
+            small, truth[:4], cfg, normals=[normals[0], normals[1][:5], *normals[2:]]
+        )
+    with pytest.raises(TypeError, match=r"refine: argument 'normals' must be a sequence"):
+        registration.refine(small, truth[:4], cfg, normals=normals[0])
+
+
 def test_zero_rounds_returns_chained_poses(critter):
     _, clouds = critter
     names = [f"s{i}" for i in range(3)]

@@ -281,6 +281,16 @@ def _broadcast_shapes(shapes: list[Sequence[int]]) -> tuple[int, ...] | None:
     return tuple(result)
 
 
+def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
+    """``torch.broadcast_shapes`` for plain shapes, without its first call's cost (it imports
+    ``torch._refs``: ~0.2 s, once per process, on the path of every entry point that uses it);
+    RuntimeError when the shapes do not broadcast, as torch's."""
+    result = _broadcast_shapes([tuple(shape) for shape in shapes]) if shapes else ()
+    if result is None:
+        raise RuntimeError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
+    return torch.Size(result)
+
+
 def check_sizes(fn: str, name: str, sizes: Sequence[object]) -> tuple[int, ...]:
     """Check a batch shape given as ints (TypeError unless int-like, ValueError if negative)."""
     checked = []

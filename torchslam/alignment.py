@@ -165,7 +165,7 @@ def weighted_kabsch(
 
 def _check_broadcasts_to(fn: str, name: str, x: Tensor, shape: torch.Size) -> None:
     try:
-        ok = torch.broadcast_shapes(x.shape, shape) == shape
+        ok = _checks.broadcast_shapes(x.shape, shape) == shape
     except RuntimeError:
         ok = False
     if not ok:

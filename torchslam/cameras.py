@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchslam import _checks
 from torchslam.lie import so3
 
 __all__ = [
@@ -51,7 +52,7 @@ def _snavely_prediction(T: Tensor, X: Tensor, intrinsics: Tensor):
     p, f, k1, k2, r², ρ, f ρ, for P = R X + t and the pixels u = f ρ p; one formula for
     :func:`snavely_project` and :func:`snavely_jacobians` (the same bits). Written on
     contiguous columns (:func:`_columns`)."""
-    shape = torch.broadcast_shapes(T.shape[:-2], X.shape[:-1], intrinsics.shape[:-1])
+    shape = _checks.broadcast_shapes(T.shape[:-2], X.shape[:-1], intrinsics.shape[:-1])
     rows = _columns(T[..., :3, :].reshape(*T.shape[:-2], 12), shape, 12)
     R = [rows[4 * k : 4 * k + 3] for k in range(3)]
     x0, x1, x2 = _columns(X, shape, 3)

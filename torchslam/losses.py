@@ -417,7 +417,7 @@ def triggs_correction(s: Tensor, rho1: Tensor, rho2: Tensor) -> tuple[Tensor, Te
     _checks.check_tensor(fn, "rho2", rho2)
     _checks.check_same_kind(fn, s=s, rho1=rho1, rho2=rho2)
     try:
-        torch.broadcast_shapes(s.shape, rho1.shape, rho2.shape)
+        _checks.broadcast_shapes(s.shape, rho1.shape, rho2.shape)
     except RuntimeError:
         raise ValueError(
             f"{fn}: shapes of 's' {tuple(s.shape)}, 'rho1' {tuple(rho1.shape)} and 'rho2' "

@@ -310,7 +310,7 @@ class Euclidean(Manifold):
 
     def _right_multiply_by_plus_jacobian(self, x: Tensor, J_r_ambient: Tensor) -> Tensor:
         # J_GL = I: only broadcast the batch dims.
-        batch = torch.broadcast_shapes(x.shape[:-1], J_r_ambient.shape[:-2])
+        batch = _checks.broadcast_shapes(x.shape[:-1], J_r_ambient.shape[:-2])
         return J_r_ambient.expand(*batch, *J_r_ambient.shape[-2:])
 
 

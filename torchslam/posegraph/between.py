@@ -140,7 +140,7 @@ def between_jacobians_jacrev(T_i: Tensor, T_j: Tensor, Z_ij: Tensor) -> tuple[Te
         ``(J_r_delta_i, J_r_delta_j)``, each of shape broadcast(...) + (6, 6).
     """
     _check_poses("between_jacobians_jacrev", T_i=T_i, T_j=T_j, Z_ij=Z_ij)
-    batch = torch.broadcast_shapes(T_i.shape[:-2], T_j.shape[:-2], Z_ij.shape[:-2])
+    batch = _checks.broadcast_shapes(T_i.shape[:-2], T_j.shape[:-2], Z_ij.shape[:-2])
     Ti, Tj, Z = (T.expand(*batch, 4, 4) for T in (T_i, T_j, Z_ij))
     return right_jacobian_jacrev(_between, (Ti, Tj), constants=(Z,), batch_dims=len(batch))
 
@@ -186,7 +186,7 @@ def prior_jacobian_jacrev(T: Tensor, Z: Tensor) -> Tensor:
         J_r_delta, shape broadcast(...) + (6, 6).
     """
     _check_poses("prior_jacobian_jacrev", T=T, Z=Z)
-    batch = torch.broadcast_shapes(T.shape[:-2], Z.shape[:-2])
+    batch = _checks.broadcast_shapes(T.shape[:-2], Z.shape[:-2])
     (J,) = right_jacobian_jacrev(
         _prior,
         (T.expand(*batch, 4, 4),),

@@ -763,6 +763,8 @@ def refine(
     *,
     pairs: Sequence[tuple[int, int]] | None = None,
     progress: Progress | None = None,
+    normals: Sequence[Tensor] | None = None,
+    covariances: bool = True,
 ) -> RefineResult:
     """Joint ICP-SLAM refinement: rounds of point tracks + the point-map least-squares solve.
 
@@ -773,6 +775,11 @@ def refine(
         pairs: scan pairs to match; by default those of :func:`overlapping_pairs` at
             ``poses`` with ``config.min_overlap``.
         progress: called with one line per round.
+        normals: unit normals of the clouds (m tensors of their shapes, any sign), e.g. kept
+            from an earlier stage; by default estimated here (PCA over
+            ``config.normal_neighbors`` neighbours).
+        covariances: compute :attr:`RefineResult.pose_covariances` (a marginalization of
+            the last round's Hessian); False leaves them None.
 
     Returns:
         :class:`RefineResult`, poses in the frame of scan 0 (its pose is the gauge).
@@ -789,7 +796,10 @@ def refine(
     if pairs is None:
         pairs, _ = overlapping_pairs(clouds, poses, config.voxel, config.min_overlap)
     pairs = list(pairs)
-    normals = [icp.estimate_normals(c, min(config.normal_neighbors, len(c))) for c in clouds]
+    if normals is None:
+        normals = [icp.estimate_normals(c, min(config.normal_neighbors, len(c))) for c in clouds]
+    else:
+        normals = _check_normals(fn, normals, clouds)
     if config.boundary_threshold is not None:
         # Tracks only on interior points; Tracks.source_index then indexes these subsets.
         interior = [
@@ -801,7 +811,7 @@ def refine(
     radius = config.track_radius * config.voxel
     rounds: list[RoundInfo] = []
     tracks = None
-    covariances = None
+    covariances_wanted, covariances = bool(covariances), None
     for index in range(config.rounds if pairs else 0):
         tic = time.perf_counter()
         tracks = build_tracks(clouds, poses, radius, pairs=pairs)
@@ -817,7 +827,8 @@ def refine(
         )
         if finite:
             poses = relative_to_first(updated, 0)
-            covariances = _pose_covariances(problem, result, solver)
+            if covariances_wanted:
+                covariances = _pose_covariances(problem, result, solver)
         info = RoundInfo(
             tracks.num_points,
             tracks.num_edges,
@@ -844,6 +855,29 @@ def refine(
         ):
             break
     return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config, covariances)
+
+
+def _check_normals(fn: str, normals: object, clouds: Sequence[Tensor]) -> list[Tensor]:
+    if isinstance(normals, (str, bytes)) or not isinstance(normals, Sequence):
+        raise TypeError(
+            f"{fn}: argument 'normals' must be a sequence of (N, 3) tensors or None, got "
+            f"{_checks.describe(normals)}"
+        )
+    if len(normals) != len(clouds):
+        raise ValueError(
+            f"{fn}: argument 'normals' must hold one tensor per cloud ({len(clouds)}), got "
+            f"{len(normals)}"
+        )
+    checked = []
+    for k, (n, c) in enumerate(zip(normals, clouds, strict=True)):
+        n = _checks.as_points(fn, f"normals[{k}]", n, like=c)
+        if n.shape != c.shape:
+            raise ValueError(
+                f"{fn}: argument 'normals[{k}]' must have the shape of clouds[{k}] "
+                f"{tuple(c.shape)}, got {tuple(n.shape)}"
+            )
+        checked.append(n)
+    return checked
 
 
 def _pose_covariances(problem: PointMapProblem, result, solver: SolverConfig) -> Tensor | None:

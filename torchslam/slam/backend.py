@@ -212,9 +212,19 @@ def _refine(
         voxel_size=config.voxel,
         rounds=config.refine_rounds,
         normal_neighbors=config.normal_neighbors,
+        max_iterations=config.refine_iterations,
     )
     clouds = [kf.points for kf in keyframes]
-    result = refine(clouds, poses, register_config, pairs=sorted(pairs))
+    # the keyframes' normals are those of their clouds already; the pose covariances come
+    # from the pose graph (step 3)
+    result = refine(
+        clouds,
+        poses,
+        register_config,
+        pairs=sorted(pairs),
+        normals=[kf.normals for kf in keyframes],
+        covariances=False,
+    )
     if not result.rounds:
         return poses, 0, float("nan")
     refined = result.poses
