@@ -171,6 +171,8 @@ def test_refine_takes_given_normals_and_skips_covariances(critter):
         registration.refine(
             small, truth[:4], cfg, normals=[normals[0], normals[1][:5], *normals[2:]]
         )
+    with pytest.raises(TypeError, match=r"refine: argument 'covariances' must be a bool"):
+        registration.refine(small, truth[:4], cfg, covariances="no")
     with pytest.raises(TypeError, match=r"refine: argument 'normals' must be a sequence"):
         registration.refine(small, truth[:4], cfg, normals=normals[0])
 

@@ -792,6 +792,10 @@ def refine(
         raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if pairs is not None:
         pairs = _checks.check_index_pairs(fn, pairs, len(clouds))
+    if not isinstance(covariances, bool):
+        raise TypeError(
+            f"{fn}: argument 'covariances' must be a bool, got {_checks.describe(covariances)}"
+        )
     poses = relative_to_first(poses.detach().clone().to(clouds[0].dtype), 0)
     if pairs is None:
         pairs, _ = overlapping_pairs(clouds, poses, config.voxel, config.min_overlap)
@@ -811,7 +815,7 @@ def refine(
     radius = config.track_radius * config.voxel
     rounds: list[RoundInfo] = []
     tracks = None
-    covariances_wanted, covariances = bool(covariances), None
+    covariances_wanted, covariances = covariances, None
     for index in range(config.rounds if pairs else 0):
         tic = time.perf_counter()
         tracks = build_tracks(clouds, poses, radius, pairs=pairs)

@@ -118,8 +118,9 @@ class SLAMConfig:
     # again
     loop_max_chi2: float = 200.0
     # rounds of the joint multiview ICP-SLAM refinement of the keyframes (poses and points, the
-    # seed's problem) after the pose graph; 0 (default): none. One round on hku2-loop's 266
-    # keyframes takes ~75 s (2 threads) for a few centimetres of ATE, so it is opt-in.
+    # seed's problem) after the pose graph; 0 (default): none. One round on hku2-loop's 253
+    # keyframes takes ~9 s (1 thread; ATE 0.082 → 0.079 m; quick-shack 0.165 → 0.157 m): ~35 ms
+    # per frame on top of the odometry's, past a 10 Hz LiDAR's budget, so it is opt-in.
     refine_rounds: int = 0
     # keyframe pairs matched by the refinement: neighbours up to this index gap, plus loops
     refine_neighbors: int = 2
@@ -246,7 +247,7 @@ _DEFAULTS: dict[str, dict[str, object]] = {
         "start_rotation_deg": 0.0,
         # the local map on a grid of half the frame's voxel (2 cm): the frame's points find
         # their nearest map point on the surface twice as close, where a 4 cm grid's
-        # chords cut curved surfaces (7-Scenes: 0.78 → 0.62 cm ATE; a LiDAR's sparse rings
+        # chords cut curved surfaces (7-Scenes: 0.78 → 0.63 cm ATE; a LiDAR's sparse rings
         # do not gain from it, see map_voxel_fraction)
         "map_voxel_fraction": 0.5,
         # steps of 0.8 mm and 0.02° (≈ 0.9 mm at 2.5 m): below the Kinect's depth noise

@@ -540,10 +540,14 @@ def instance_blocks(
         residual_scale, alpha_over_s = losses.triggs_correction(s, rho1, rho2)
         if weight is not None:
             alpha_over_s = alpha_over_s * weight
-        if bool((alpha_over_s != 0).any()):
+        # (the shortcut reads α on the host: CPU tensors outside torch.func transforms only)
+        plain = alpha_over_s.device.type == "cpu" and not (
+            torch._C._functorch.is_functorch_wrapped_tensor(alpha_over_s)
+        )
+        if not plain or bool((alpha_over_s != 0).any()):
             projector = alpha_over_s[..., None, None] * r[..., :, None]
             J = torch.sqrt(rho1)[..., None, None] * (J - projector @ (r[..., None, :] @ J))
-        else:  # α = 0 everywhere (e.g. Huber, Cauchy outside the knee): √ρ' scaling alone
+        else:  # α = 0 everywhere (Huber, Cauchy, Tukey: ρ'' ≤ 0): √ρ' scaling alone
             J = torch.sqrt(rho1)[..., None, None] * J
         r = residual_scale[..., None] * r
         if not all_valid:

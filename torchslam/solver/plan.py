@@ -824,12 +824,13 @@ class LinearPlan:
     ) -> Tensor:
         """``upper`` (num_slots, 6, 6) less the points' part Σ_j W_ij V_j⁻¹ W_kjᵀ of every
         block (i, k), from the edge couplings W (E, 6, 3) and V⁻¹ (B·n, 3, 3): the pairs of
-        each block cut into pieces of ``PIECE`` (:meth:`_pair_pieces`), so that a piece's sum
-        Σ_p Y_p W_pᵀ (Y = W V⁻¹) is one (6 × 3·PIECE)·(3·PIECE × 6) product of a batched GEMM,
-        ``PIECES_PER_STEP`` pieces at a time (no per-pair (pairs, 6, 6) scratch). A pair of
-        two edges of one pose (a diagonal block, not a self pair) adds Y_a W_bᵀ + its
+        each block cut into pieces of P ≤ ``PIECE`` pairs (:meth:`_pair_pieces`), so that a
+        piece's sum Σ_p Y_p W_pᵀ (Y = W V⁻¹) is one (6 × 3P)·(3P × 6) product of a batched
+        GEMM, ``PIECES_PER_STEP · PIECE`` pairs at a time (no per-pair (pairs, 6, 6) scratch).
+        A pair of two edges of one pose (a diagonal block, not a self pair) adds Y_a W_bᵀ + its
         transpose."""
         first, second, slot, mirror = self._pair_pieces()
+        size = first.shape[1]
         Y = W @ V_inv.reshape(-1, 3, 3)[point_slot]
         zero = W.new_zeros(1, 3, 6)
         # the blocks transposed (E + 1, 3, 6), a zero block last for the padding: a piece's
@@ -837,10 +838,11 @@ class LinearPlan:
         Yt = torch.cat((Y.transpose(1, 2), zero))
         Wt = torch.cat((W.transpose(1, 2), zero))
         graph = torch.is_grad_enabled() and (W.requires_grad or V_inv.requires_grad)
-        for start in range(0, slot.numel(), PIECES_PER_STEP):
-            sl = slice(start, start + PIECES_PER_STEP)
-            left = Yt[first[sl]].reshape(-1, 3 * PIECE, 6)
-            right = Wt[second[sl]].reshape(-1, 3 * PIECE, 6)
+        step = max(1, PIECES_PER_STEP * PIECE // size)
+        for start in range(0, slot.numel(), step):
+            sl = slice(start, start + step)
+            left = Yt[first[sl]].reshape(-1, 3 * size, 6)
+            right = Wt[second[sl]].reshape(-1, 3 * size, 6)
             product = torch.bmm(left.transpose(1, 2), right)
             product = torch.where(
                 mirror[sl, None, None], product + product.transpose(1, 2), product
@@ -852,17 +854,28 @@ class LinearPlan:
         return upper
 
     def _pair_pieces(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The edge pairs cut into pieces of ``PIECE`` pairs of one upper block and kind
-        (mirrored or not): first and second edge of each pair (Q, PIECE) (the zero block E on
-        the padding), the block's slot (Q,) and whether the piece is mirrored (Q,); built once
-        per plan."""
+        """The edge pairs cut into pieces of P pairs of one upper block and kind (mirrored or
+        not): first and second edge of each pair (Q, P) (the zero block E on the padding), the
+        block's slot (Q,) and whether the piece is mirrored (Q,); built once per plan. P is the
+        power of two up to ``PIECE`` that minimizes the padded pairs plus ``PIECE`` per piece
+        (a piece's fixed cost): ``PIECE`` where blocks share hundreds of points (keyframes of
+        a sequence), less where they share a few (a sparse bundle adjustment)."""
 
         def compute() -> tuple[Tensor, Tensor, Tensor, Tensor]:
             pairs = self._pairs()
             slots = self.pair_slots if self.pair_slots is not None else pairs.key
             blocks, block = torch.unique(slots, return_inverse=True)
             mirror = pairs.same_pose & ~pairs.self_pair
-            items, group = pieces(2 * block + mirror.long(), 2 * blocks.numel(), PIECE, -1)
+            group = 2 * block + mirror.long()
+            counts = torch.bincount(group, minlength=2 * blocks.numel())
+            counts = counts[counts > 0]
+
+            def cost(size: int) -> int:
+                per = (counts + size - 1) // size
+                return int((per * size).sum()) + PIECE * int(per.sum())
+
+            size = min((1 << k for k in range(PIECE.bit_length())), key=cost)
+            items, group = pieces(group, 2 * blocks.numel(), size, -1)
             padding = items < 0
             edges = self.edges.pose_index.numel()
             first = torch.where(padding, edges, pairs.first[items.clamp_min(0)])
