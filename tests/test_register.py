@@ -200,6 +200,13 @@ def test_information_matrices_and_boundary_mask():
     mask = registration.boundary_mask(grid, 12, 0.3).reshape(20, 20)
     assert mask[0].all() and mask[-1].all() and mask[:, 0].all() and mask[:, -1].all()
     assert not mask[3:-3, 3:-3].any()
+    # the grid's normal given (either sign): the same test without the PCA
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(400, 3)
+    for normals in (up, -up):
+        given = registration.boundary_mask(grid, 12, 0.3, normals=normals).reshape(20, 20)
+        assert torch.equal(given, mask)
+    with pytest.raises(ValueError, match="boundary_mask: argument 'normals' must have the shape"):
+        registration.boundary_mask(grid, 12, 0.3, normals=up[:10])
 
 
 def test_overlapping_pairs():

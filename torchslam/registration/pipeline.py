@@ -599,7 +599,9 @@ def overlapping_pairs(
     return pairs, torch.from_numpy(overlap)
 
 
-def boundary_mask(points: Tensor, neighbors: int = 12, threshold: float = 0.3) -> Tensor:
+def boundary_mask(
+    points: Tensor, neighbors: int = 12, threshold: float = 0.3, normals: Tensor | None = None
+) -> Tensor:
     """Points on the boundary of a scan (its silhouette or a hole's rim).
 
     Inside a sampled surface the k nearest neighbours of a point surround it and their
@@ -613,6 +615,9 @@ def boundary_mask(points: Tensor, neighbors: int = 12, threshold: float = 0.3) -
         points: cloud, shape (N, 3), N ≥ 2, finite (a tensor or a numpy array).
         neighbors: k ≥ 3, including the point itself, clipped to N.
         threshold: offset ratio, > 0.
+        normals: unit normals of ``points`` (N, 3), any sign (e.g. from
+            :func:`~torchslam.registration.neighbors.estimate_normals` with the same
+            ``neighbors``), instead of the PCA of each neighbourhood here.
 
     Returns:
         Mask, bool, shape (N,), on ``points``' device (CPU for a numpy array).
@@ -635,15 +640,25 @@ def boundary_mask(points: Tensor, neighbors: int = 12, threshold: float = 0.3) -
         raise ValueError(
             f"{fn}: argument 'points' contains non-finite values (NaN or Inf), first at point {bad}"
         )
+    if normals is not None:
+        normals = _checks.as_points(fn, "normals", normals, like=points)
+        if normals.shape != points.shape:
+            raise ValueError(
+                f"{fn}: argument 'normals' must have the shape of 'points' "
+                f"{tuple(points.shape)}, got {tuple(normals.shape)}"
+            )
     k = min(neighbors, points.shape[0])
     distance, index = cKDTree(x).query(x, k=k, workers=icp.query_workers())
     local = x[index]  # (N, k, 3)
     centroid = local.mean(1)
     # Only the offset along the surface counts: on a curved surface the centroid also lies
     # off the point along the normal (the smallest principal axis of the neighbourhood).
-    centred = local - centroid[:, None]
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-    normal = vectors[..., 0]
+    if normals is None:
+        centred = local - centroid[:, None]
+        _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+        normal = vectors[..., 0]
+    else:
+        normal = normals.detach().cpu().numpy().astype(np.float64, copy=False)
     offset = centroid - x
     offset -= (offset * normal).sum(-1, keepdims=True) * normal
     spacing = distance[:, 1:].mean(1)
@@ -800,6 +815,8 @@ def refine(
     if pairs is None:
         pairs, _ = overlapping_pairs(clouds, poses, config.voxel, config.min_overlap)
     pairs = list(pairs)
+    # given normals also serve the boundary test (its neighbourhood's own PCA otherwise)
+    given = normals is not None
     if normals is None:
         normals = [icp.estimate_normals(c, min(config.normal_neighbors, len(c))) for c in clouds]
     else:
@@ -807,7 +824,10 @@ def refine(
     if config.boundary_threshold is not None:
         # Tracks only on interior points; Tracks.source_index then indexes these subsets.
         interior = [
-            ~boundary_mask(c, config.normal_neighbors, config.boundary_threshold) for c in clouds
+            ~boundary_mask(
+                c, config.normal_neighbors, config.boundary_threshold, n if given else None
+            )
+            for c, n in zip(clouds, normals, strict=True)
         ]
         clouds = [c[keep] for c, keep in zip(clouds, interior, strict=True)]
         normals = [n[keep] for n, keep in zip(normals, interior, strict=True)]

@@ -119,7 +119,7 @@ class SLAMConfig:
     loop_max_chi2: float = 200.0
     # rounds of the joint multiview ICP-SLAM refinement of the keyframes (poses and points, the
     # seed's problem) after the pose graph; 0 (default): none. One round on hku2-loop's 253
-    # keyframes takes ~9 s (1 thread; ATE 0.082 → 0.079 m; quick-shack 0.165 → 0.157 m): ~35 ms
+    # keyframes takes ~8 s (1 thread; ATE 0.082 → 0.078 m; quick-shack 0.165 → 0.157 m): ~30 ms
     # per frame on top of the odometry's, past a 10 Hz LiDAR's budget, so it is opt-in.
     refine_rounds: int = 0
     # keyframe pairs matched by the refinement: neighbours up to this index gap, plus loops
