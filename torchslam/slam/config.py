@@ -119,14 +119,15 @@ class SLAMConfig:
     loop_max_chi2: float = 200.0
     # rounds of the joint multiview ICP-SLAM refinement of the keyframes (poses and points, the
     # seed's problem) after the pose graph; 0 (default): none. One round on hku2-loop's 253
-    # keyframes takes ~8 s (1 thread; ATE 0.082 → 0.078 m; quick-shack 0.165 → 0.157 m): ~30 ms
-    # per frame on top of the odometry's, past a 10 Hz LiDAR's budget, so it is opt-in.
+    # keyframes takes ~5 s (1 thread; ATE 0.082 → 0.078 m; quick-shack 0.165 → 0.157 m in
+    # ~2 s): ~20 ms per frame on top of the odometry's ~75, at the edge of a 10 Hz LiDAR's
+    # budget, so it is opt-in.
     refine_rounds: int = 0
     # keyframe pairs matched by the refinement: neighbours up to this index gap, plus loops
     refine_neighbors: int = 2
     # Levenberg-Marquardt iterations per refinement round at most (the rounds re-associate;
-    # on hku2-loop 3 iterations reach the round's cost to 3e-4 relative and the same ATE)
-    refine_iterations: int = 5
+    # on hku2-loop 3 iterations reach the round's cost to 3e-4 relative and the ATE of 50)
+    refine_iterations: int = 3
 
     def __post_init__(self) -> None:
         fn = "SLAMConfig"

@@ -461,12 +461,23 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
         whitening = factor if factor is not None and factor.dim() == 4 else None
         if whitening is None:
             whitening = whitening_factors(data)
-    cost, rw, Jw, scale, JtJ, Jtr = instance_blocks(
-        r, J, data.valid, whitening, data.masked_weights(), data.loss, data.all_valid()
+    cost, rw, Jw, scale, _, Jtr = instance_blocks(
+        r, J, data.valid, whitening, data.masked_weights(), data.loss, data.all_valid(), False
     )
+    # The three blocks of J̃ᵀJ̃·w that are used (pose, coupling, point), each by its own
+    # product: the same sums as the (9 × 9) product's entries, without its unused lower-left
+    # block and the copies of its strided slices.
+    Jt = Jw.transpose(-1, -2)
+    if scale is not None:
+        Jt = scale[..., None, None] * Jt
+    Jt_pose = Jt[..., :6, :]
+    J_point = Jw[..., 6:]
+    pose_block = matmul(Jt_pose, Jw[..., :6])
+    coupling = matmul(Jt_pose, J_point)
+    point_block = matmul(Jt[..., 6:, :], J_point)
     pose_index, point_index = data.flat_pose_index, data.flat_point_index
-    U = segment_sum(pose_index, B * m, JtJ[..., :6, :6].reshape(-1, 6, 6))
-    V = segment_sum(point_index, B * n, JtJ[..., 6:, 6:].reshape(-1, 3, 3))
+    U = segment_sum(pose_index, B * m, pose_block.reshape(-1, 6, 6))
+    V = segment_sum(point_index, B * n, point_block.reshape(-1, 3, 3))
     gp = segment_sum(pose_index, B * m, Jtr[..., :6].reshape(-1, 6))
     gl = segment_sum(point_index, B * n, Jtr[..., 6:].reshape(-1, 3))
     eye6, eye3 = _series.eye(6, U.dtype, U.device), _series.eye(3, U.dtype, U.device)
@@ -480,7 +491,7 @@ def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
         point_blocks=V,
         residuals=rw,
         jacobian=Jw,
-        coupling=JtJ[..., :6, 6:],
+        coupling=coupling,
         scale=scale,
     )
 
