@@ -22,7 +22,7 @@ Usage::
 
     .venv/bin/python experiments/slam_sequences.py [--sequences rgbd-7scenes,...|FOLDER]
         [--threads 1,2] [--peers-python ../peers-venv/bin/python]
-        [--no-peers] [--out out/slam_sequences]
+        [--no-peers] [--refine N] [--out out/slam_sequences]
 
 Writes ``OUT/results.json`` and ``OUT/time_rss.png`` (time per frame and RSS against the frame
 index, torchslam, per sequence).
@@ -72,12 +72,12 @@ def _errors(poses: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
     return trajectory_errors(poses, reference)
 
 
-def run_torchslam(folder: Path, threads: int) -> tuple[dict, int, str]:
+def run_torchslam(folder: Path, threads: int, refine: int = 0) -> tuple[dict, int, str]:
     from torchslam.slam import SLAM, SLAMConfig, frame_reader
 
     torch.set_num_threads(threads)
     read, count, times, sensor = frame_reader(folder)
-    slam = SLAM(SLAMConfig.for_sensor(sensor))
+    slam = SLAM(SLAMConfig.for_sensor(sensor, refine_rounds=refine))
     per_frame, rss = [], []
     start = time.perf_counter()
     for i in range(count):
@@ -205,6 +205,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--no-peers", action="store_true")
     parser.add_argument(
+        "--refine",
+        type=int,
+        default=0,
+        help="also run torchslam with this many rounds of the joint refinement (0: not)",
+    )
+    parser.add_argument(
         "--no-plant", action="store_true", help="skip the planted wrong loop closure runs"
     )
     parser.add_argument("--out", type=Path, default=Path("out") / "slam_sequences")
@@ -236,6 +242,16 @@ def main(argv: list[str] | None = None) -> int:
                 f"{record['loops_accepted'] + record['loops_rejected']}",
                 "max_rss_mb": max(record["rss_mb"]),
             })  # fmt: skip
+            if args.refine > 0:
+                refined, _, _ = run_torchslam(folder, t, args.refine)
+                refined.pop("slam")
+                rows.append({
+                    "sequence": name, "method": f"torchslam SLAM, refine {args.refine}",
+                    "threads": t, **_errors(refined["poses"], reference),
+                    "ms_per_frame": refined["ms_per_frame"], "reading": True,
+                    "loops": f"{refined['loops_accepted']} of "
+                    f"{refined['loops_accepted'] + refined['loops_rejected']}",
+                })  # fmt: skip
             if peers:
                 for method, value in run_peers(args.peers_python, folder, sensor, t, work).items():
                     if "poses" not in value:
