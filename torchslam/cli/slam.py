@@ -80,8 +80,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--refine",
         type=int_range(0, 100),
-        default=0,
-        help="rounds of the joint multiview ICP-SLAM refinement of the keyframes (0)",
+        default=None,
+        help="rounds of the joint multiview ICP-SLAM refinement of the keyframes (LiDAR 1, "
+        "depth 0)",
     )
     parser.add_argument(
         "--times", type=Path, default=None, help="timestamps file (default: the folder's times.txt)"
@@ -131,7 +132,9 @@ def run(
     if args.out.exists() and not args.out.is_dir():
         raise ValueError(f"--out {args.out} exists and is not a directory")
     paths, sensor = frame_io.list_frames(args.path, args.sensor)
-    overrides: dict[str, object] = {"loops": not args.no_loops, "refine_rounds": args.refine}
+    overrides: dict[str, object] = {"loops": not args.no_loops}
+    if args.refine is not None:
+        overrides["refine_rounds"] = args.refine
     if args.voxel is not None:
         overrides["voxel"] = args.voxel
     if args.max_range is not None:
