@@ -72,12 +72,14 @@ def _errors(poses: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
     return trajectory_errors(poses, reference)
 
 
-def run_torchslam(folder: Path, threads: int, refine: int = 0) -> tuple[dict, int, str]:
+def run_torchslam(folder: Path, threads: int, refine: int | None = None) -> tuple[dict, int, str]:
+    """One run with the sensor's defaults (``refine``: the refinement rounds instead)."""
     from torchslam.slam import SLAM, SLAMConfig, frame_reader
 
     torch.set_num_threads(threads)
     read, count, times, sensor = frame_reader(folder)
-    slam = SLAM(SLAMConfig.for_sensor(sensor, refine_rounds=refine))
+    overrides = {} if refine is None else {"refine_rounds": refine}
+    slam = SLAM(SLAMConfig.for_sensor(sensor, **overrides))
     per_frame, rss = [], []
     start = time.perf_counter()
     for i in range(count):
@@ -207,8 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--refine",
         type=int,
-        default=0,
-        help="also run torchslam with this many rounds of the joint refinement (0: not)",
+        default=None,
+        help="also run torchslam with this many rounds of the joint refinement (the defaults: "
+        "LiDAR 1, depth 0)",
     )
     parser.add_argument(
         "--no-plant", action="store_true", help="skip the planted wrong loop closure runs"
@@ -242,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{record['loops_accepted'] + record['loops_rejected']}",
                 "max_rss_mb": max(record["rss_mb"]),
             })  # fmt: skip
-            if args.refine > 0:
+            if args.refine is not None:
                 refined, _, _ = run_torchslam(folder, t, args.refine)
                 refined.pop("slam")
                 rows.append({
