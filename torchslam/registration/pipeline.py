@@ -835,7 +835,7 @@ def refine(
     radius = config.track_radius * config.voxel
     rounds: list[RoundInfo] = []
     tracks = None
-    covariances_wanted, covariances = covariances, None
+    pose_covariances = None
     for index in range(config.rounds if pairs else 0):
         tic = time.perf_counter()
         tracks = build_tracks(clouds, poses, radius, pairs=pairs)
@@ -851,8 +851,8 @@ def refine(
         )
         if finite:
             poses = relative_to_first(updated, 0)
-            if covariances_wanted:
-                covariances = _pose_covariances(problem, result, solver)
+            if covariances:
+                pose_covariances = _pose_covariances(problem, result, solver)
         info = RoundInfo(
             tracks.num_points,
             tracks.num_edges,
@@ -878,7 +878,7 @@ def refine(
             and translation_change <= config.translation_tolerance * config.voxel
         ):
             break
-    return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config, covariances)
+    return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config, pose_covariances)
 
 
 def _check_normals(fn: str, normals: object, clouds: Sequence[Tensor]) -> list[Tensor]:

@@ -826,7 +826,8 @@ class LinearPlan:
         block (i, k), from the edge couplings W (E, 6, 3) and V⁻¹ (B·n, 3, 3): the pairs of
         each block cut into pieces of P ≤ ``PIECE`` pairs (:meth:`_pair_pieces`), so that a
         piece's sum Σ_p Y_p W_pᵀ (Y = W V⁻¹) is one (6 × 3P)·(3P × 6) product of a batched
-        GEMM, ``PIECES_PER_STEP · PIECE`` pairs at a time (no per-pair (pairs, 6, 6) scratch).
+        GEMM, ``PIECES_PER_STEP · PIECE`` pairs (at most the plan's chunk size) at a time (no
+        per-pair (pairs, 6, 6) scratch).
         A pair of two edges of one pose (a diagonal block, not a self pair) adds Y_a W_bᵀ + its
         transpose."""
         first, second, slot, mirror = self._pair_pieces()
@@ -838,7 +839,7 @@ class LinearPlan:
         Yt = torch.cat((Y.transpose(1, 2), zero))
         Wt = torch.cat((W.transpose(1, 2), zero))
         graph = torch.is_grad_enabled() and (W.requires_grad or V_inv.requires_grad)
-        step = max(1, PIECES_PER_STEP * PIECE // size)
+        step = max(1, min(self.chunk_size, PIECES_PER_STEP * PIECE) // size)
         for start in range(0, slot.numel(), step):
             sl = slice(start, start + step)
             left = Yt[first[sl]].reshape(-1, 3 * size, 6)
