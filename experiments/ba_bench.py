@@ -58,9 +58,9 @@ def _child(path: str, threads: int) -> None:
                 "final_cost": float(result.final_cost[0]),
                 "iterations": int(result.iterations[0]),
                 # one factorization and solve per iteration; a linearization at the start and
-                # at every candidate
+                # at every evaluated candidate
                 "linear_solves": int(result.iterations[0]),
-                "jacobian_evaluations": int(result.iterations[0]) + 1,
+                "jacobian_evaluations": int(result.linearizations[0]),
                 "seconds": seconds,
                 "status": result.status[0].name,
                 "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,

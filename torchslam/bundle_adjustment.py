@@ -28,7 +28,8 @@ from torchslam.solver.config import SolverConfig
 __all__ = ["BA_CONFIG", "bal_from_problem", "problem_from_bal"]
 
 # Ceres' defaults for bundle adjustment (its solver_options: function_tolerance 1e-6,
-# gradient_tolerance 1e-10, parameter_tolerance 1e-8, 50 iterations; LM; Schur), used by
+# gradient_tolerance 1e-10, parameter_tolerance 1e-8, 50 iterations; LM; Schur; and, as
+# Ceres, no step taken whose cost change is within the function tolerance), used by
 # ``torchslam ba`` and the benchmark, so that both solvers stop by the same rules.
 BA_CONFIG = SolverConfig(
     linear_solver="schur",
@@ -37,6 +38,7 @@ BA_CONFIG = SolverConfig(
     gradient_tolerance=1e-10,
     parameter_tolerance=1e-8,
     max_iterations=50,
+    take_negligible_steps=False,
 )
 
 

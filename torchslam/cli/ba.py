@@ -134,7 +134,10 @@ def run(
         echo("Solver summary (½ Σ ‖r‖², pixels²)")
         echo(f"  initial cost   {float(result.initial_cost[0]):.7e}")
         echo(f"  final cost     {float(result.final_cost[0]):.7e}")
-        echo(f"  iterations     {int(result.iterations[0])}")
+        echo(
+            f"  iterations     {int(result.iterations[0])} (linear solves; Jacobian "
+            f"evaluations {int(result.linearizations[0])})"
+        )
         echo(f"  status         {status.name}: {result.reason[0]}")
         echo(
             f"  time           {result.time_seconds:.3f} s solving (linearize "

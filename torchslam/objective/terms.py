@@ -92,6 +92,7 @@ __all__ = [
     "term_parameters",
     "term_points",
     "term_poses",
+    "term_rows",
     "term_squared_norms",
     "term_whitening",
     "terms_cost",
@@ -726,6 +727,54 @@ def term_blocks(
             Jg = torch.nn.functional.pad(Jg, (0, width - Jg.shape[-1]))
         parts.append(Jg.reshape(B, K, d, -1, SLOT))
     return r, torch.cat(parts, dim=3), J_point
+
+
+def term_rows(
+    term: Term,
+    poses: Tensor,
+    points: Tensor,
+    mode: str,
+    parameters: Mapping[str, Tensor] | None,
+    free_point: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """(r (B, K, d), J (B, K, d, 6a' + 3)) of a point term: :func:`term_blocks`' slot blocks
+    flattened, then the point's 3 columns (times ``free_point`` (B, K) when given), written
+    into one tensor (no concatenations). Outside autograd and ``torch.func`` transforms
+    (in-place writes into a new tensor); elsewhere :func:`term_blocks` and a concatenation."""
+    plain = not torch.is_grad_enabled() and not any(
+        torch._C._functorch.is_functorch_wrapped_tensor(x) for x in (poses, points)
+    )
+    if not plain:
+        r, J, J_point = term_blocks(term, poses, points, mode, parameters)
+        if free_point is not None:
+            J_point = J_point * free_point[..., None, None]
+        return r, torch.cat((J.flatten(-2), J_point), -1)
+    parameters = dict(parameters or {})
+    out = _pose_point_blocks(term, poses, points, mode, parameters)
+    r, J, J_point = out[:3]
+    B, K, d = r.shape
+    a = J.shape[3]
+    blocks = []
+    width = 6 * a
+    for name in term.parameter_index if term.has_parameters else ():
+        Jg = out[3][name]
+        if Jg.dim() == 4:
+            Jg = Jg[..., None, :]
+        slots = -(-Jg.shape[-1] // SLOT)
+        blocks.append((width, Jg, slots))
+        width += Jg.shape[-2] * slots * SLOT
+    rows = r.new_empty(B, K, d, width + 3)
+    rows[..., : 6 * a].view(B, K, d, a, 6).copy_(J)
+    for start, Jg, slots in blocks:
+        q, size = Jg.shape[-2:]
+        part = rows[..., start : start + q * slots * SLOT].view(B, K, d, q, slots * SLOT)
+        part[..., :size].copy_(Jg)
+        part[..., size:].zero_()
+    if free_point is None:
+        rows[..., width:].copy_(J_point)
+    else:
+        torch.mul(J_point, free_point[..., None, None], out=rows[..., width:])
+    return r, rows
 
 
 def _pose_point_blocks(term, poses, points, mode, parameters):

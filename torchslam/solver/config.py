@@ -60,6 +60,12 @@ class SolverConfig:
     max_iterations: int = 100
     # Stop when |ΔF| ≤ function_tolerance · F after an accepted step.
     function_tolerance: float = 1e-10
+    # Levenberg-Marquardt: with False, a problem whose step the model predicts to decrease
+    # the cost by at most function_tolerance · F stops there (CONVERGED_FUNCTION) without
+    # evaluating or taking that step, as Ceres takes no step whose cost change is below its
+    # function tolerance (one linearization fewer per solve). True takes it: the iterate is
+    # one step closer to the minimum, which derivatives of the solution want.
+    take_negligible_steps: bool = True
     # Stop when max |∇F| ≤ gradient_tolerance.
     gradient_tolerance: float = 1e-12
     # Stop when ‖δ‖ ≤ parameter_tolerance · (‖x‖ + parameter_tolerance).
@@ -96,6 +102,11 @@ class SolverConfig:
         ):
             value = check_number("SolverConfig", name, getattr(self, name), low, closed, infinite)
             object.__setattr__(self, name, value)
+        if not isinstance(self.take_negligible_steps, bool):
+            raise ValueError(
+                "SolverConfig: 'take_negligible_steps' must be a bool, got "
+                f"{type(self.take_negligible_steps).__name__} {self.take_negligible_steps!r}"
+            )
         if self.linear_solver == "dense" and self.reduced_solver == "sparse":
             raise ValueError(
                 "SolverConfig: 'reduced_solver' = 'sparse' factors the reduced pose system of "

@@ -67,6 +67,7 @@ from torchslam.objective.terms import (
     term_parameters,
     term_points,
     term_poses,
+    term_rows,
     term_whitening,
     terms_cost,
 )
@@ -836,18 +837,24 @@ def linearize_terms(
         values = None
         if term.has_parameters:
             values = term_parameters(term, data.parameters, parameters)
-        r, J, J_point = term_blocks(term, term_poses(term, poses), X, jacobian_mode, values)
         K, a = term.slot_index.shape[1:]
+        T_k = term_poses(term, poses)
+        if has_point:  # J (B, K, d, 6a + 3): the slots' columns, then the point's
+            free_point = None
+            if bool(data.fixed_points.any()):
+                free_point = ~data.fixed_points.reshape(-1)[total.batch * n + term.point_index]
+            r, J = term_rows(term, T_k, X, jacobian_mode, values, free_point)
+        else:
+            r, J, _ = term_blocks(term, T_k, X, jacobian_mode, values)
+            J = J.flatten(-2)  # (B, K, d, 6a)
         fixed = term_fixed_rows(term, data.fixed_slots)
         if fixed is not None:  # the columns of fixed poses are zero (on those rows only)
             rows, free = fixed
             flat = J.reshape(B * K, *J.shape[2:])
-            J = flat.index_copy(0, rows, flat[rows] * free[:, None, :, None]).reshape(J.shape)
-        J = J.flatten(-2)  # (B, K, d, 6a)
-        if has_point:
-            point_slots = total.batch * n + term.point_index  # (B, K)
-            free_point = ~data.fixed_points.reshape(-1)[point_slots]
-            J = torch.cat((J, J_point * free_point[..., None, None]), -1)
+            scale = free[:, None, :, None].expand(-1, 1, -1, 6).reshape(-1, 1, 6 * a)
+            if has_point:
+                scale = torch.cat((scale, scale.new_ones(scale.shape[0], 1, 3)), -1)
+            J = flat.index_copy(0, rows, flat[rows] * scale).reshape(J.shape)
         all_valid = term_all_valid(term)
         whitening = term_whitening(term) if term.information is not None else None
         weight = term.weight
@@ -866,9 +873,9 @@ def linearize_terms(
         if has_point:
             # w J̃ᵀJ̃_X in one small product (3 columns: the point's), then its rows: the
             # couplings J̃_slotsᵀ J̃_X and the point block J̃_Xᵀ J̃_X.
-            products = matmul(Jt, Jw[..., P:])
-            point_block = products[..., P:, :]
-            coupling = products[..., :P, :]
+            J_point = Jw[..., P:]
+            coupling = matmul(Jt[..., :P, :], J_point)  # contiguous: a view per slot
+            point_block = matmul(Jt[..., P:, :], J_point)
         grouping = term_grouping(term)
         if grouping is not None and not torch.is_grad_enabled():
             # Σ J̃ᵀJ̃·w per signature by GEMM pieces (TermGrouping), then the slot blocks.

@@ -110,6 +110,9 @@ class State:
     linear_solve_seconds: float = 0.0
     # The parameter blocks' slot values (B, S, 6), or None for a problem without them.
     parameters: Tensor | None = None
+    # Linearizations (Jacobian evaluations) so far per problem, long (B,): the start and
+    # every evaluated candidate.
+    evaluations: Tensor | None = None
 
     @functools.cached_property
     def xi(self) -> Tensor:
@@ -180,6 +183,7 @@ def initial_state(
         accepted=torch.zeros(B, dtype=torch.long, device=xi.device),
         linearize_seconds=seconds,
         parameters=parameters,
+        evaluations=torch.ones(B, dtype=torch.long, device=xi.device),
     )
 
 
@@ -281,6 +285,7 @@ def iterate(
     T, moved, X, lam, nu, status, lin = s.poses, s.moved, s.X, s.lam, s.nu, s.status, s.lin
     P = s.parameters
     iterations, cost, accepted_total = s.iterations, s.cost, s.accepted
+    evaluations = s.evaluations if s.evaluations is not None else torch.ones_like(iterations)
     # ‖ξ₀‖² per pose, for the poses that have not moved (:func:`_norm_bound`).
     start_square = s.start.detach().square().sum(-1)
     linearize_seconds, solve_seconds = s.linearize_seconds, s.linear_solve_seconds
@@ -300,6 +305,34 @@ def iterate(
             ok = factorization.ok
         tock = time.perf_counter()
         solve_seconds += tock - tick
+        predicted = None
+        done = torch.zeros_like(active)
+        if algorithm == "levenberg_marquardt":
+            with torch.no_grad():
+                predicted = model_decrease(lin, data, dp, dl)
+                if not config.take_negligible_steps:
+                    # The model promises at most function_tolerance·F: the step is neither
+                    # evaluated nor taken (SolverConfig.take_negligible_steps).
+                    done = active & ok & (predicted >= 0)
+                    done = done & (predicted <= config.function_tolerance * cost.detach())
+            if not config.take_negligible_steps and bool(done[active].all()):
+                status = torch.where(done, int(Status.CONVERGED_FUNCTION), status)
+                zero = torch.zeros_like(active)
+                step_norm = torch.sqrt(
+                    dp.square().flatten(1).sum(-1) + dl.square().flatten(1).sum(-1)
+                ).detach()
+                s = dataclasses.replace(
+                    s,
+                    status=status,
+                    iterations=iterations,
+                    step_norm=step_norm,
+                    last_accepted=zero,
+                    linear_solve_seconds=solve_seconds,
+                )
+                if on_step is not None:
+                    on_step(s)
+                continue
+        evaluations = evaluations + (active & ~done)
         T_new, X_new, moves, P_new = retract(T, X, dp, dl, P)
         lin_new = linearize(None, X_new, data, factor, config.jacobian, structured, T_new, P_new)
         linearize_seconds += time.perf_counter() - tock
@@ -319,14 +352,12 @@ def iterate(
                 x_norm = torch.sqrt(x_square)
             old_cost, new_cost = cost.detach(), lin_new.cost.detach()
             finite = _finite(new_cost) & _finite(step_norm)
-            predicted = None
             if algorithm == "levenberg_marquardt":
-                predicted = model_decrease(lin, data, dp, dl)
                 gain = (old_cost - new_cost) / predicted
-                accepted = active & ok & finite & (predicted > 0) & (gain > 0)
+                accepted = active & ~done & ok & finite & (predicted > 0) & (gain > 0)
                 factor_up = torch.clamp(1 - (2 * gain - 1) ** 3, min=1 / 3)
                 lam = torch.where(accepted, (lam * factor_up).clamp_min(config.min_lambda), lam)
-                rejected = active & ~accepted
+                rejected = active & ~done & ~accepted
                 lam = torch.where(rejected, lam * nu, lam)
                 nu = torch.where(accepted, 2.0, torch.where(rejected, nu * 2, nu))
             elif algorithm == "gauss_newton":
@@ -383,6 +414,7 @@ def iterate(
             linearize_seconds,
             solve_seconds,
             P,
+            evaluations,
         )
         if on_step is not None:
             on_step(s)
@@ -491,4 +523,5 @@ def result(state: State, history: Histories, start: float, layout=None) -> Solve
         step_norm_history=steps,
         linearize_seconds=state.linearize_seconds,
         linear_solve_seconds=state.linear_solve_seconds,
+        linearizations=state.evaluations,
     )

@@ -63,7 +63,13 @@ from torchslam.solver.linearize import (
     point_terms,
     term_pair_keys,
 )
-from torchslam.solver.segments import pieces, segment_sum, unique_rows
+from torchslam.solver.segments import (
+    pieces,
+    segment_sum,
+    stable_argsort,
+    unique_inverse,
+    unique_rows,
+)
 from torchslam.solver.sparse import BlockPattern, SparseFactor, factorization_work
 
 __all__ = [
@@ -262,7 +268,7 @@ class InstancePairs:
         rows, cols, point, sig = rows[order], cols[order], point[order], sig[order]
         U = signatures.shape[0]
         # Pairs of instances of one point, k ≤ l in point order.
-        order = torch.argsort(point, stable=True)
+        order = stable_argsort(point, B * max(n, 1))
         sorted_point = point[order]
         _, counts = torch.unique_consecutive(sorted_point, return_counts=True)
         start = torch.cumsum(counts, 0) - counts
@@ -277,7 +283,7 @@ class InstancePairs:
         second_sorted = first_sorted + local
         first, second = order[first_sorted], order[second_sorted]
         pair_key = sig[first] * U + sig[second]
-        unique_pairs, pair_slot = torch.unique(pair_key, return_inverse=True)
+        unique_pairs, pair_slot = unique_inverse(pair_key, U * U)
         P_sig = unique_pairs.numel()
         if P_sig * D * D > MAX_SIGNATURE_ENTRIES:
             return None

@@ -80,6 +80,10 @@ class SolveResult:
     # linear solves (assembly, factorization, back-substitution).
     linearize_seconds: float = 0.0
     linear_solve_seconds: float = 0.0
+    # Linearizations (Jacobian evaluations) per problem, long (B,): the start and every
+    # evaluated candidate step (one fewer than iterations + 1 where the last step was not
+    # evaluated: SolverConfig.take_negligible_steps).
+    linearizations: Tensor | None = None
     # Optimized parameter blocks by group, {name: (B, q, d)} (empty without parameter blocks).
     parameters: dict[str, Tensor] = field(default_factory=dict)
 

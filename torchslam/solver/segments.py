@@ -15,12 +15,20 @@ from __future__ import annotations
 import warnings
 import weakref
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from torchslam import _inference
 
-__all__ = ["SPARSE_MIN_EDGES", "pieces", "segment_sum", "unique_rows"]
+__all__ = [
+    "SPARSE_MIN_EDGES",
+    "pieces",
+    "segment_sum",
+    "stable_argsort",
+    "unique_inverse",
+    "unique_rows",
+]
 
 # Below this many edges index_add_ is as fast (the sparse product's fixed cost dominates).
 SPARSE_MIN_EDGES = 4096
@@ -107,6 +115,26 @@ def _ones_matrix(index: Tensor, rows: int, dtype: torch.dtype) -> Tensor:
 # Planning helpers of the grouped products (.plan.InstancePairs, .linearize.TermGrouping)
 
 
+def stable_argsort(keys: Tensor, bound: int) -> Tensor:
+    """``torch.argsort(keys, stable=True)`` of long keys in [0, bound): on the CPU with
+    bound ≤ 2¹⁶, NumPy's radix sort of 16-bit keys (5× faster; a stable order is unique, so
+    the same permutation)."""
+    if keys.device.type == "cpu" and bound <= 1 << 16:
+        order = np.argsort(keys.numpy().astype(np.uint16), kind="stable")
+        return torch.from_numpy(order.astype(np.int64))
+    return torch.argsort(keys, stable=True)
+
+
+def unique_inverse(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
+    """``torch.unique(keys, return_inverse=True)`` (sorted) of long keys in [0, bound): by a
+    count of the keys when the bound is small next to their number (no sort), else the sort."""
+    if bound <= max(4 * keys.numel(), 1 << 16):
+        present = torch.bincount(keys, minlength=bound) > 0
+        rank = torch.cumsum(present, 0) - 1
+        return present.nonzero()[:, 0], rank[keys]
+    return torch.unique(keys, return_inverse=True)
+
+
 def unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     """(unique rows in lexicographic order, inverse) of a long (R, c) tensor with entries
     ≥ 0: the columns folded into one key, key · (max + 1) + column, as long as its bound
@@ -123,7 +151,7 @@ def unique_rows(x: Tensor) -> tuple[Tensor, Tensor]:
             _, key = torch.unique(key, return_inverse=True)
             bound = int(key.max()) + 1
         key, bound = key * width + column, bound * width
-    _, rank = torch.unique(key, return_inverse=True)
+    _, rank = unique_inverse(key, bound)
     count = int(rank.max()) + 1
     first = torch.full((count,), x.shape[0], dtype=torch.long, device=x.device)
     first = first.scatter_reduce(0, rank, torch.arange(x.shape[0], device=x.device), "amin")
@@ -136,7 +164,7 @@ def pieces(group: Tensor, num_groups: int, size: int, fill: int) -> tuple[Tensor
     piece), for ``group`` (N,) long in [0, num_groups). Within a piece the items keep their
     order (a stable sort)."""
     device = group.device
-    order = torch.argsort(group, stable=True)
+    order = stable_argsort(group, num_groups)
     sorted_group = group[order]
     counts = torch.bincount(sorted_group, minlength=num_groups)
     per_group = (counts + size - 1) // size
