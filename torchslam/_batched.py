@@ -18,9 +18,9 @@ __all__ = ["GRAIN_SIZE", "matmul", "sum_last"]
 GRAIN_SIZE = 32768
 
 
-def matmul(a: Tensor, b: Tensor) -> Tensor:
+def matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
     """a @ b for stacks of small matrices, (..., p, q) @ (..., q, r) → (..., p, r) (leading
-    dims broadcast, as ``@``)."""
+    dims broadcast, as ``@``); written into ``out`` (contiguous, of that shape) when given."""
     if (
         type(a) is torch.Tensor  # not a subclass (FakeTensor, a tracing wrapper): no .numpy()
         and type(b) is torch.Tensor
@@ -40,8 +40,13 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
         if not _matrices_contiguous(b):
             b_np = np.ascontiguousarray(b_np)
         with np.errstate(all="ignore"):
+            if out is not None and out.is_contiguous() and out.dtype == a.dtype:
+                np.matmul(a.detach().numpy(), b_np, out=out.detach().numpy())
+                return out
             product = np.matmul(a.detach().numpy(), b_np)
-        return torch.from_numpy(product)
+        return torch.from_numpy(product) if out is None else out.copy_(torch.from_numpy(product))
+    if out is not None:
+        return out.copy_(a @ b)
     return a @ b
 
 

@@ -41,6 +41,7 @@ Adding a reduced solver means writing one class with the interface of :class:`De
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -199,6 +200,13 @@ class InstancePairs:
     size: int
     # Some instance has fewer columns than D (its rows include the zero row).
     padded: bool = False
+    # Per instance its entries in the flat edge couplings (B·E'·18 values, + 3 zeros when
+    # padded), in the (3, D) layout of Wᵀ, (count · 3 · D,): one gather of the transposed
+    # blocks.
+    flat_t: Tensor | None = None
+    # Per instance its reduced columns b·(N + 1) + c (N + 1 padding: the dummy column), flat
+    # (count · D,); for the back-substitution products of the instance form.
+    columns: Tensor | None = None
 
     @staticmethod
     def build(data: PointMapData, edges: CouplingEdges, B: int, m: int, n: int):
@@ -305,6 +313,8 @@ class InstancePairs:
         piece_second = torch.where(padding, count, second[pairs_of.clamp_min(0)])
         piece_slot, piece_half = piece_group // 2, piece_group % 2 == 1
         padded = bool((rows == zero_row).any())
+        flat_t = (rows[:, None, :] * 3 + torch.arange(3, device=device)[None, :, None]).reshape(-1)
+        columns = ((point // max(n, 1))[:, None] * (N + 1) + cols).reshape(-1)
         return InstancePairs(
             rows,
             point,
@@ -317,32 +327,37 @@ class InstancePairs:
             P_sig,
             size,
             padded,
+            flat_t,
+            columns,
         )
 
-    def points_part(self, coupling: Tensor, V_inv: Tensor, chunk: int, B: int) -> Tensor:
-        """Σ_j W_j V_j⁻¹ W_jᵀ as a dense (B, N, N) matrix, from the edge couplings
-        (B·E', 6, 3) and V⁻¹ (B·n, 3, 3)."""
+    def points_part(
+        self, coupling: Tensor, V_inv: Tensor, chunk: int, B: int
+    ) -> tuple[Tensor, Tensor | None]:
+        """(Σ_j W_j V_j⁻¹ W_jᵀ as a dense (B, N, N) matrix, the instances' blocks Wᵀ
+        (count, 3, D) or None with autograd), from the edge couplings (B·E', 6, 3) and V⁻¹
+        (B·n, 3, 3)."""
         rows = coupling.reshape(-1, 3)
         if self.padded:  # a zero row for the padding columns
             rows = torch.cat((rows, rows.new_zeros(1, 3)))
         count, D = self.rows.shape
         # [Wᵀ; 0] and [Yᵀ; 0] per instance (count, 3, D), Yᵀ = V⁻¹ Wᵀ (V⁻¹ symmetric)
-        Wt = rows.index_select(0, self.rows.reshape(-1)).reshape(count, D, 3).transpose(1, 2)
         V_e = V_inv.reshape(-1, 9).index_select(0, self.point).reshape(count, 3, 3)
-        zero = rows.new_zeros(1, 3, D)
         # With autograd (the unrolled backward) every step is out of place; without, the
-        # stacks are written in place (no copies), V⁻¹Wᵀ by the small-matrix product of
-        # :mod:`torchslam._batched`.
+        # stacks are written in place (no copies): Wᵀ by one gather of its entries, V⁻¹Wᵀ
+        # by the small-matrix product of :mod:`torchslam._batched`.
         graph = torch.is_grad_enabled() and (rows.requires_grad or V_inv.requires_grad)
         if graph:
+            Wt = rows.index_select(0, self.rows.reshape(-1)).reshape(count, D, 3).transpose(1, 2)
+            zero = rows.new_zeros(1, 3, D)
             W_ext = torch.cat((Wt, zero))
             Y_ext = torch.cat((V_e @ Wt, zero))
         else:
             W_ext = rows.new_empty(count + 1, 3, D)
-            W_ext[:count] = Wt
+            torch.index_select(rows.reshape(-1), 0, self.flat_t, out=W_ext[:count].view(-1))
             W_ext[count] = 0.0
             Y_ext = rows.new_empty(count + 1, 3, D)
-            Y_ext[:count] = matmul(V_e, W_ext[:count])
+            matmul(V_e, W_ext[:count], out=Y_ext[:count])
             Y_ext[count] = 0.0
         half = torch.where(self.piece_half, 0.5, 1.0).to(rows.dtype)[:, None, None]
         buffer = rows.new_zeros(self.num_signature_pairs, D, D)
@@ -363,7 +378,8 @@ class InstancePairs:
         dense = rows.new_zeros(B * size * size)
         values = buffer.reshape(-1)
         dense = dense.index_add(0, self.flat, values).index_add(0, self.flat_mirror, values)
-        return dense.reshape(B, size, size)[:, : size - 1, : size - 1]
+        dense = dense.reshape(B, size, size)[:, : size - 1, : size - 1]
+        return dense, None if graph else W_ext[:count]
 
 
 def spd_inverse_3x3(V: Tensor) -> tuple[Tensor, Tensor]:
@@ -580,6 +596,9 @@ class _BlockElimination:
     pose_slot: Tensor
     point_slot: Tensor
     shape: tuple[int, int, int]
+    # The same couplings by instance (:class:`InstancePairs`): (Wᵀ (count, 3, D), the
+    # structure); the products then run over the instances' D active columns.
+    instances: tuple[Tensor, InstancePairs] | None = None
 
     def point_solve(self, x: Tensor) -> Tensor:
         return (self.V_inv @ x[..., None])[..., 0]
@@ -591,13 +610,25 @@ class _BlockElimination:
     def couple(self, y: Tensor) -> Tensor:
         """Σ_e W_e y_j(e) per pose, y (B, n, 3) → (B, m, 6)."""
         B, m, _ = self.shape
+        if self.instances is not None:
+            Wt, pairs = self.instances
+            y_i = y.reshape(-1, 3).index_select(0, pairs.point)
+            Wy = matmul(y_i[:, None, :], Wt).reshape(-1, 1)
+            out = segment_sum(pairs.columns, B * (6 * m + 1), Wy).reshape(B, 6 * m + 1)
+            return out[:, : 6 * m].reshape(B, m, 6)
         y_e = y.reshape(-1, 3).index_select(0, self.point_slot)
         Wy = (self.W @ y_e[..., None])[..., 0]
         return segment_sum(self.pose_slot, B * m, Wy).reshape(B, m, 6)
 
     def couple_transposed(self, dp: Tensor) -> Tensor:
         """Σ_e W_eᵀ δp_i(e) per point, dp (B, m, 6) → (B, n, 3)."""
-        B, _, n = self.shape
+        B, m, n = self.shape
+        if self.instances is not None:
+            Wt, pairs = self.instances
+            padded = torch.nn.functional.pad(dp.reshape(B, 6 * m), (0, 1)).reshape(-1)
+            dp_i = padded.index_select(0, pairs.columns).reshape(Wt.shape[0], -1, 1)
+            Wt_dp = (Wt @ dp_i)[..., 0]
+            return segment_sum(pairs.point, B * n, Wt_dp).reshape(B, n, 3)
         dp_e = dp.reshape(-1, 6).index_select(0, self.pose_slot)
         Wt_dp = (self.W.transpose(-1, -2) @ dp_e[..., None])[..., 0]
         return segment_sum(self.point_slot, B * n, Wt_dp).reshape(B, n, 3)
@@ -817,7 +848,9 @@ class LinearPlan:
         instances = self._instances()
         if instances is not None:
             B = self.shape[0]
-            C = instances.points_part(W, V_inv.reshape(-1, 3, 3), self.chunk_size, B)
+            C, Wt = instances.points_part(W, V_inv.reshape(-1, 3, 3), self.chunk_size, B)
+            if Wt is not None:  # the back-substitution by instances: no zero rows, no edges
+                elim = dataclasses.replace(elim, instances=(Wt, instances))
             factor = self._factor_dense(U, lin, -C)
             return Factorization(factor, elim, point_ok, self.shape)
         upper = self._upper(U, lin)
@@ -1004,7 +1037,8 @@ class LinearPlan:
             value = None
             if not self.sparse and self._data is not None and point_terms(self._data):
                 B, m, n = self.shape
-                value = InstancePairs.build(self._data, self.edges, B, m, n)
+                with _inference.outside():  # normal tensors: segment_sum keeps their matrices
+                    value = InstancePairs.build(self._data, self.edges, B, m, n)
             self._cache["instances"] = value
         return self._cache["instances"]
 
