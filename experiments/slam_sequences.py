@@ -18,10 +18,18 @@ RPE: RMSE of the translation of successive-frame motions (evo_rpe --delta 1). Re
 are the dataset's (7-Scenes: KinectFusion; LiDAR: a LiDAR-inertial system with loop closure,
 a pseudo ground truth).
 
+Variants (``--variants``): each sequence can also be run reversed and thinned, a new sequence
+of the same kind each (``full``: as recorded; ``rev``: last frame first; ``every2``: every
+second frame; ``every2+1``: every second frame from the second; ``rev-every2+1``: both), every
+method on the same frames and the reference indexed alike: a stand-in for sequences the
+defaults were not tuned on. ``--variants robustness`` runs the six variants
+``full,every2,every2+1`` forward and reversed.
+
 Usage::
 
     .venv/bin/python experiments/slam_sequences.py [--sequences rgbd-7scenes,...|FOLDER]
-        [--threads 1,2] [--peers-python ../peers-venv/bin/python]
+        [--threads 1,2] [--variants full,rev,every2,...|robustness]
+        [--peers-python ../peers-venv/bin/python]
         [--no-peers] [--refine N] [--out out/slam_sequences]
 
 Writes ``OUT/results.json`` and ``OUT/time_rss.png`` (time per frame and RSS against the frame
@@ -72,12 +80,51 @@ def _errors(poses: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
     return trajectory_errors(poses, reference)
 
 
-def run_torchslam(folder: Path, threads: int, refine: int | None = None) -> tuple[dict, int, str]:
-    """One run with the sensor's defaults (``refine``: the refinement rounds instead)."""
-    from torchslam.slam import SLAM, SLAMConfig, frame_reader
+ROBUSTNESS = ("full", "every2", "every2+1", "rev", "rev-every2", "rev-every2+1")
+
+
+def variant_indices(spec: str, count: int) -> list[int]:
+    """The frame indices of a variant of a sequence of ``count`` frames: ``full``, ``rev``,
+    ``everyN``, ``everyN+K`` (every N-th frame from the K-th), ``rev-…`` (reversed first)."""
+    order = list(range(count))
+    rest = spec
+    if rest == "full":
+        return order
+    if rest.startswith("rev"):
+        order, rest = order[::-1], rest[3:].lstrip("-")
+    if rest:
+        if not rest.startswith("every"):
+            raise ValueError(
+                f"variant {spec!r}: expected full, rev, everyN, everyN+K, rev-everyN+K"
+            )
+        every, _, offset = rest[5:].partition("+")
+        order = order[int(offset or 0) :: int(every)]
+    return order
+
+
+def _reader(folder: Path, variant: str):
+    """frame_reader(folder) restricted to a variant: (read, count, times, sensor, indices of
+    the frames used, number of frames in the sequence)."""
+    from torchslam.slam import frame_reader
+
+    read, count, times, sensor = frame_reader(folder)
+    indices = variant_indices(variant, count)
+    if times is not None:
+        times = np.asarray(times)[indices]
+        if variant.startswith("rev"):
+            times = None  # the streaming API wants time to run forward: frame indices instead
+    return (lambda i: read(indices[i])), len(indices), times, sensor, indices, count
+
+
+def run_torchslam(
+    folder: Path, threads: int, refine: int | None = None, variant: str = "full"
+) -> tuple[dict, int, str]:
+    """One run with the sensor's defaults (``refine``: the refinement rounds instead) on a
+    variant of the sequence (:func:`variant_indices`)."""
+    from torchslam.slam import SLAM, SLAMConfig
 
     torch.set_num_threads(threads)
-    read, count, times, sensor = frame_reader(folder)
+    read, count, times, sensor, indices, total = _reader(folder, variant)
     overrides = {} if refine is None else {"refine_rounds": refine}
     slam = SLAM(SLAMConfig.for_sensor(sensor, **overrides))
     per_frame, rss = [], []
@@ -104,6 +151,7 @@ def run_torchslam(folder: Path, threads: int, refine: int | None = None) -> tupl
         "loops_rejected": len(result.rejected_loops),
         "unreliable": sum(not f.trusted for f in result.frames),
         "slam": (slam, result),
+        "indices": (indices, total),
     }
     return record, count, sensor
 
@@ -145,10 +193,10 @@ def run_planted(folder: Path) -> dict:
     """The sequence once more with a planted wrong loop candidate (the two keyframes farthest
     apart, verified by ICP as a detected candidate is) and a wrong closure forced into the
     graph (the identity between them, as confident as an odometry step)."""
-    from torchslam.slam import SLAM, SLAMConfig, frame_reader
+    from torchslam.slam import SLAM, SLAMConfig
 
     torch.set_num_threads(1)
-    read, count, _, sensor = frame_reader(folder)
+    read, count, _, sensor, _, _ = _reader(folder, "full")
     slam = SLAM(SLAMConfig.for_sensor(sensor))
     for i in range(count):
         slam.add(read(i))
@@ -170,19 +218,17 @@ def run_planted(folder: Path) -> dict:
     }
 
 
-def _clouds(folder: Path) -> list[np.ndarray]:
+def _clouds(folder: Path, variant: str) -> list[np.ndarray]:
     """The frames as torchslam reads them (depth: its stride and range), float32, for the
     peers (read again here so that torchslam's RSS curve holds only what it keeps)."""
-    from torchslam.slam import frame_reader
-
-    read, count, _, _ = frame_reader(folder)
+    read, count, _, _, _, _ = _reader(folder, variant)
     return [read(i).numpy().astype(np.float32) for i in range(count)]
 
 
-def run_peers(python: str, folder: Path, sensor: str, threads: int, work: Path):
+def run_peers(python: str, folder: Path, sensor: str, threads: int, work: Path, variant: str):
     frames = work / "frames.npz"
     if not frames.exists():
-        arrays = {f"frame_{k:06d}": c for k, c in enumerate(_clouds(folder))}
+        arrays = {f"frame_{k:06d}": c for k, c in enumerate(_clouds(folder, variant))}
         np.savez(frames, sensor=np.array(sensor), **arrays)
     out = work / f"peers_{threads}.json"
     env = dict(os.environ)
@@ -214,6 +260,12 @@ def main(argv: list[str] | None = None) -> int:
         "LiDAR 1, depth 0)",
     )
     parser.add_argument(
+        "--variants",
+        default="full",
+        help="comma-separated: full, rev, everyN, everyN+K, rev-everyN+K (frames of each "
+        "sequence, reversed and/or thinned), or 'robustness' for " + ",".join(ROBUSTNESS),
+    )
+    parser.add_argument(
         "--no-plant", action="store_true", help="skip the planted wrong loop closure runs"
     )
     parser.add_argument("--out", type=Path, default=Path("out") / "slam_sequences")
@@ -223,14 +275,17 @@ def main(argv: list[str] | None = None) -> int:
     peers = not args.no_peers and Path(args.peers_python).exists()
     if not peers and not args.no_peers:
         print(f"peers skipped: no {args.peers_python} (bash ../shared/tools/install-peers.sh)")
+    variants = ROBUSTNESS if args.variants == "robustness" else tuple(args.variants.split(","))
     rows, series = [], {}
-    for name in args.sequences.split(","):
-        folder = Path(name) if Path(name).is_dir() else fetch(name)
-        work = args.out / name.replace("/", "_")
+    for sequence, variant in [(s, v) for s in args.sequences.split(",") for v in variants]:
+        folder = Path(sequence) if Path(sequence).is_dir() else fetch(sequence)
+        name = sequence if variant == "full" else f"{sequence}:{variant}"
+        work = args.out / name.replace("/", "_").replace(":", "_")
         work.mkdir(parents=True, exist_ok=True)
         for t in threads:
-            record, count, sensor = run_torchslam(folder, t)
-            reference = _reference(folder, count)
+            record, _, sensor = run_torchslam(folder, t, variant=variant)
+            indices, total = record.pop("indices")
+            reference = _reference(folder, total)[indices]
             odo = _errors(record["odometry_poses"], reference)
             final = _errors(record["poses"], reference)
             series.setdefault(name, record)
@@ -246,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
                 "max_rss_mb": max(record["rss_mb"]),
             })  # fmt: skip
             if args.refine is not None:
-                refined, _, _ = run_torchslam(folder, t, args.refine)
+                refined, _, _ = run_torchslam(folder, t, args.refine, variant)
                 refined.pop("slam")
                 rows.append({
                     "sequence": name, "method": f"torchslam SLAM, refine {args.refine}",
@@ -256,7 +311,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"{refined['loops_accepted'] + refined['loops_rejected']}",
                 })  # fmt: skip
             if peers:
-                for method, value in run_peers(args.peers_python, folder, sensor, t, work).items():
+                for method, value in run_peers(
+                    args.peers_python, folder, sensor, t, work, variant
+                ).items():
                     if "poses" not in value:
                         rows.append({"sequence": name, "method": method, "threads": t,
                                      "error": value.get("error")})  # fmt: skip
@@ -279,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
                     + f"; the reference fits worse at {worse} of {len(fits)}"
                 )
                 rows.append({"sequence": name, "method": "loop fits", "fits": fits})
-        if not args.no_plant:
+        if not args.no_plant and variant == "full":
             plant = run_planted(folder)
             errors = _errors(plant.pop("poses"), reference)
             fa, fb = plant.pop("frames")
@@ -309,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{'kept' if plant['forced_kept'] else 'dropped'}: ATE {errors['ate']:.4f} m "
                 f"vs {base['ate']:.4f} m ({100 * (errors['ate'] / base['ate'] - 1):+.1f} %)"
             )
+    if len(variants) > 1:
+        _print_ratios(rows, threads[0])
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     _plot(series, args.out / "time_rss.png")
     print(f"wrote {args.out / 'results.json'}, {args.out / 'time_rss.png'}")
@@ -328,6 +387,24 @@ def _print(rows: list[dict]) -> None:
             f"RPE {r['rpe']:.4f} m  {ms}{extra}{loops}"
         )
     sys.stdout.flush()
+
+
+def _print_ratios(rows: list[dict], threads: int) -> None:
+    """One line per sequence variant: torchslam's ATE (odometry, SLAM) against the best peer's."""
+    print(f"\nATE (m), {threads} thread(s): torchslam odometry / SLAM, the best peer, SLAM ÷ best")
+    for name in dict.fromkeys(r["sequence"] for r in rows):
+        here = [r for r in rows if r["sequence"] == name and r.get("threads") == threads]
+        mine = {r["method"]: r["ate"] for r in here if "ate" in r}
+        peers = {m: a for m, a in mine.items() if not m.startswith("torchslam")}
+        odo, final = mine.get("torchslam odometry"), mine.get("torchslam SLAM")
+        if not peers:
+            print(f"{name:<34} {odo:8.3f} / {final:8.3f}")
+            continue
+        best = min(peers, key=peers.get)
+        print(
+            f"{name:<34} {odo:8.3f} / {final:8.3f}   {peers[best]:8.3f} ({best})   "
+            f"{final / peers[best]:.2f}"
+        )
 
 
 def _plot(series: dict, path: Path) -> None:
