@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -241,6 +242,48 @@ def test_cli_writes_trajectories_and_evaluates(sequence, tmp_path, capsys):
     assert (out / "map.ply").is_file()
     code, _, err = call(["slam", str(tmp_path / "nowhere")], capsys)
     assert_one_line_error(code, err, "torchslam slam", "no such folder")
+
+
+def test_cli_matches_a_reference_at_another_rate_by_timestamp(sequence, tmp_path, capsys):
+    # As TUM RGB-D: the frames' times in the folder, a reference at 3× the frame rate in a
+    # TUM file, every frame's pose 2 ms from its own time and two wrong poses (1 m off)
+    # between frames; frames 0–1 precede the reference. The errors must be those against
+    # the per-frame reference of the matched frames: a wrong match would add ~1 m.
+    from torchslam.io.trajectories import write_trajectory
+
+    frames = tmp_path / "scans"
+    frames.mkdir()
+    for k, cloud in enumerate(sequence.clouds[:12]):
+        np.save(frames / f"{k}.npy", cloud.numpy())
+    times = 1000.0 + 0.1 * np.arange(12)
+    (frames / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
+    wrong = se3.compose(
+        sequence.poses[:12], se3.exp(torch.tensor([0, 0, 0, 1.0, 0, 0], dtype=torch.float64))
+    )
+    poses = torch.cat([sequence.poses[2:12], wrong[2:12], wrong[2:12]])
+    stamps = np.concatenate([times[2:] + 0.002, times[2:] + 0.033, times[2:] + 0.066])
+    order = np.argsort(stamps)
+    write_trajectory(tmp_path / "ref_tum.txt", poses[order], "tum", timestamps=stamps[order])
+    code, stdout, err = call(
+        ["slam", str(frames), "--reference", str(tmp_path / "ref_tum.txt"), "--no-loops",
+         "--out", str(tmp_path / "out")], capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    assert "10 of 12 frames matched" in stdout
+    result = run_sequence(frames, SLAMConfig.for_sensor("lidar", loops=False))
+    ate = _ate(result.poses[2:], sequence.poses[2:12])
+    reported = float(re.search(r"after back end: ATE ([0-9.]+) m", stdout).group(1))
+    assert abs(reported - ate) <= 1e-4  # printed to 4 decimals
+    # no timestamps on one side, or none near the frames: a one-line error
+    write_trajectory(tmp_path / "ref_kitti.txt", poses, "kitti")
+    code, _, err = call(
+        ["slam", str(frames), "--reference", str(tmp_path / "ref_kitti.txt")], capsys
+    )
+    assert_one_line_error(code, err, "torchslam slam", "match them by time")
+    write_trajectory(tmp_path / "late.txt", poses[order], "tum", timestamps=stamps[order] + 50.0)
+    argv = ["slam", str(frames), "--reference", str(tmp_path / "late.txt"), "--no-loops"]
+    code, _, err = call([*argv, "--out", str(tmp_path / "out2")], capsys)
+    assert_one_line_error(code, err, "torchslam slam", "0 of 12 frames have a reference pose")
 
 
 def test_depth_sequence_runs_from_a_folder(tmp_path):

@@ -18,6 +18,7 @@ import torch
 from tests.helpers import dataset_folder
 from torchslam.io.frames import (
     POINT_SUFFIXES,
+    associate_timestamps,
     check_intrinsics,
     depth_to_points,
     find_intrinsics,
@@ -764,3 +765,39 @@ def test_las_without_laspy_says_how_to_install(tmp_path, monkeypatch):
     (tmp_path / "scan.las").write_bytes(b"LASF" + b"\x00" * 20)
     with pytest.raises(ImportError, match=r"torchslam\[las\]"):
         read_points(tmp_path / "scan.las")
+
+
+def test_associate_timestamps_takes_the_nearest_sample_within_the_bound():
+    # 30 Hz frames against a 100 Hz reference, given out of order; the last frame is 2 s
+    # past the reference's end. The times are multiples of 1/2⁷ s plus a third of that, so
+    # every difference compared is far from the 0.01 s bound and from a tie.
+    step = 1 / 128
+    reference = np.arange(0.0, 1.0, step)[::-1]
+    frames = np.array([0.0, 4, 8, 12]) * step + step / 3
+    frames = np.append(frames, 3.0)
+    matched_frames, matched = associate_timestamps(frames, reference, max_difference=0.01)
+    assert matched_frames.tolist() == [0, 1, 2, 3]
+    np.testing.assert_array_equal(reference[matched], [0.0, 4 * step, 8 * step, 12 * step])
+    # a bound below the offset leaves every frame unmatched; 0 matches equal times only
+    assert associate_timestamps(frames, reference, max_difference=step / 4)[0].size == 0
+    assert associate_timestamps([0.5], [0.5, 0.25], max_difference=0.0)[1].tolist() == [0]
+    assert associate_timestamps(torch.tensor([2.0]), [2.004])[0].tolist() == [0]  # one sample
+    # a tie takes the earlier sample
+    assert associate_timestamps([1.5], [1.0, 2.0], max_difference=1.0)[1].tolist() == [0]
+
+
+@pytest.mark.parametrize(
+    ("times", "reference", "message"),
+    [
+        ([], [1.0], "'times' must be a non-empty 1-D"),
+        ([[1.0]], [1.0], "'times' must be a non-empty 1-D"),
+        ([1.0], [np.nan], "'reference_times' holds non-finite"),
+        (["a"], [1.0], "'times' must be a 1-D sequence of numbers"),
+    ],
+)
+def test_associate_timestamps_refuses_bad_times(times, reference, message):
+    error = TypeError if message.endswith("numbers") else ValueError
+    with pytest.raises(error, match=re.escape(message)):
+        associate_timestamps(times, reference)
+    with pytest.raises(ValueError, match="max_difference"):
+        associate_timestamps([1.0], [1.0], max_difference=-1.0)

@@ -16,7 +16,11 @@ under ``--quiet``), prints a summary and writes to ``--out``:
 With ``--reference`` (a TUM or KITTI file, or a folder of per-frame ``*.pose.txt``, frame →
 world) it prints the ATE (RMSE of positions after an SE(3) alignment, as ``evo_ape --align``)
 and the RPE between successive frames (as ``evo_rpe --delta 1``), for odometry alone and after
-the back end. Exit status as :mod:`torchslam.cli`; 1 when the pose graph solve failed.
+the back end. A reference holds one pose per frame of PATH, or timestamps (TUM) at another
+rate: then each frame used takes the reference pose nearest in time, within 0.01 s (evo's
+``--t_max_diff``), and the errors are over the matched frames (TUM RGB-D's
+``groundtruth.txt`` beside its ``depth.txt``). Exit status as :mod:`torchslam.cli`; 1 when
+the pose graph solve failed.
 """
 
 from __future__ import annotations
@@ -91,10 +95,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reference",
         type=Path,
         default=None,
-        help="reference poses (TUM, KITTI, or a folder of *.pose.txt): prints ATE and RPE",
+        help="reference poses (TUM, KITTI, or a folder of *.pose.txt; one per frame, or TUM "
+        "timestamps matched to the frames'): prints ATE and RPE",
     )
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (out)")
     add_threads_argument(parser)
+
+
+# A frame and a reference pose match when their timestamps differ by at most this (seconds):
+# evo's default --t_max_diff.
+MAX_TIME_DIFFERENCE = 0.01
+# An SE(3) alignment and an RPE need a few matched frames.
+MIN_MATCHED_FRAMES = 3
+
+
+def _match_by_time(times, reference_times, args) -> tuple[np.ndarray, np.ndarray]:
+    """(frames used, reference rows) matched by timestamp; ValueError when too few match."""
+    from torchslam.io import frames as frame_io
+
+    if times is None:  # pragma: no cover - checked before the run
+        raise ValueError(f"--reference {args.reference}: the frames have no timestamps")
+    frames, matched = frame_io.associate_timestamps(times, reference_times, MAX_TIME_DIFFERENCE)
+    if len(frames) < MIN_MATCHED_FRAMES:
+        raise ValueError(
+            f"--reference {args.reference}: {len(frames)} of {len(times)} frames have a "
+            f"reference pose within {MAX_TIME_DIFFERENCE:g} s (frame times "
+            f"{float(times.min()):.3f}…{float(times.max()):.3f} s, reference "
+            f"{float(reference_times.min()):.3f}…{float(reference_times.max()):.3f} s); at "
+            f"least {MIN_MATCHED_FRAMES} are needed"
+        )
+    return frames, matched
 
 
 def trajectory_errors(poses, reference) -> dict[str, float]:
@@ -144,15 +174,20 @@ def run(
     if args.times is not None:
         times = frame_io.read_timestamps(args.times, len(paths), [p.name for p in paths])
     used = list(range(0, len(paths), args.every))
-    reference = None
+    reference = reference_times = None
     if args.reference is not None:
-        reference, _ = frame_io.read_reference_poses(args.reference)
-        if reference.shape[0] != len(paths):
+        reference, reference_times = frame_io.read_reference_poses(args.reference)
+        if reference.shape[0] == len(paths):
+            reference, reference_times = reference[used], None  # one pose per frame
+        elif reference_times is None or (
+            args.times is None and frame_io.find_timestamps(paths[0].parent) is None
+        ):
             raise ValueError(
                 f"--reference {args.reference}: {reference.shape[0]} poses for "
-                f"{len(paths)} frames (one per frame of {args.path} is needed)"
+                f"{len(paths)} frames: one per frame of {args.path} is needed, or timestamps "
+                "on both sides to match them by time (a TUM reference file, and the frames' "
+                "times.txt, depth.txt or --times)"
             )
-        reference = reference[used]
     if progress is None:
         progress = sys.stderr.isatty() and echo is print
     wrap = None
@@ -179,8 +214,16 @@ def run(
         )
         _write(args.out, result, used, echo, warn)
         if reference is not None:
-            odometry = trajectory_errors(result.odometry_poses, reference)
-            final = trajectory_errors(result.poses, reference)
+            frames = slice(None)
+            if reference_times is not None:
+                frames, matched = _match_by_time(result.timestamps, reference_times, args)
+                reference = reference[matched]
+                echo(
+                    f"{len(frames)} of {len(used)} frames matched to {args.reference} by "
+                    f"timestamp (nearest within {MAX_TIME_DIFFERENCE:g} s, as evo)"
+                )
+            odometry = trajectory_errors(result.odometry_poses[frames], reference)
+            final = trajectory_errors(result.poses[frames], reference)
             for name, e in (("odometry", odometry), ("after back end", final)):
                 echo(
                     f"{name:>15}: ATE {e['ate']:.4f} m, RPE {e['rpe']:.4f} m / "

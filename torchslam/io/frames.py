@@ -35,6 +35,7 @@ from torchslam.io import _text
 __all__ = [
     "DEPTH_SUFFIXES",
     "POINT_SUFFIXES",
+    "associate_timestamps",
     "check_intrinsics",
     "depth_to_points",
     "find_intrinsics",
@@ -578,3 +579,58 @@ def read_reference_poses(
     if count is not None and result.shape[0] != count:
         raise ValueError(f"{fn}: {where}: {result.shape[0]} poses for {count} frames")
     return result, times
+
+
+def associate_timestamps(
+    times: object, reference_times: object, max_difference: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """Match frames to reference poses by time, as ``evo`` does (``--t_max_diff``, 0.01 s):
+    each frame takes the reference sample nearest in time, kept when at most
+    ``max_difference`` seconds away. For a reference sampled at another rate than the frames
+    (TUM RGB-D's ``groundtruth.txt``: 100 Hz motion capture beside 30 Hz depth frames).
+
+    Args:
+        times: the frames' timestamps (F,), seconds, finite.
+        reference_times: the reference poses' timestamps (R,), seconds, finite, any order.
+        max_difference: the largest time difference of a match, seconds, ≥ 0.
+
+    Returns:
+        ``(frames, reference)``: int64 index arrays (M,), M ≤ F, the matched frames in
+        increasing order and the reference sample each one takes.
+    """
+    fn = "associate_timestamps"
+    arrays = []
+    for name, value in (("times", times), ("reference_times", reference_times)):
+        if isinstance(value, Tensor):
+            value = value.detach().cpu().numpy()
+        try:
+            array = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"{fn}: argument {name!r} must be a 1-D sequence of numbers, got "
+                f"{_checks.describe(value)}"
+            ) from None
+        if array.ndim != 1 or array.size == 0:
+            raise ValueError(
+                f"{fn}: argument {name!r} must be a non-empty 1-D sequence of times, got shape "
+                f"{array.shape}"
+            )
+        if not np.isfinite(array).all():
+            raise ValueError(f"{fn}: argument {name!r} holds non-finite times")
+        arrays.append(array)
+    limit = _checks.check_real(fn, "max_difference", max_difference, low=0.0)
+    frame_times, reference = arrays
+    order = np.argsort(reference, kind="stable")
+    sorted_times = reference[order]
+    right = np.clip(np.searchsorted(sorted_times, frame_times), 1, len(sorted_times) - 1)
+    left = right - 1
+    if len(sorted_times) == 1:
+        left = right = np.zeros_like(right)
+    # the nearer neighbour; a tie takes the earlier sample
+    nearer = np.where(
+        np.abs(sorted_times[right] - frame_times) < np.abs(frame_times - sorted_times[left]),
+        right,
+        left,
+    )
+    kept = np.abs(sorted_times[nearer] - frame_times) <= limit
+    return np.flatnonzero(kept).astype(np.int64), order[nearer[kept]].astype(np.int64)
