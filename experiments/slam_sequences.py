@@ -31,6 +31,10 @@ Usage::
         [--threads 1,2] [--variants full,rev,every2,...|robustness]
         [--peers-python ../peers-venv/bin/python]
         [--no-peers] [--refine N] [--out out/slam_sequences]
+        [--depth-scale 5000 --intrinsics K.txt --reference groundtruth.txt]
+
+A sequence of one's own (a folder) is read as ``torchslam slam`` reads it; its reference
+poses are matched to the frames by index, or by timestamp for a TUM file at another rate.
 
 Writes ``OUT/results.json`` and ``OUT/time_rss.png`` (time per frame and RSS against the frame
 index, torchslam, per sequence).
@@ -62,24 +66,45 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def _reference(folder: Path, count: int):
+def _reference(folder: Path, count: int, times: np.ndarray | None, path: Path | None = None):
+    """The reference pose of every frame, (count, 4, 4) frame → world, NaN where a frame has
+    none: one pose per frame (by index), or a TUM file at another rate matched by timestamp
+    (``torchslam.io.frames.associate_timestamps``, 0.01 s as evo: TUM RGB-D's
+    groundtruth.txt). ``path``: the file or folder, else the folder's optimized_poses.txt,
+    groundtruth.txt or per-frame *.pose.txt."""
+    from torchslam.cli.slam import MAX_TIME_DIFFERENCE
     from torchslam.io import frames as fio
 
-    for candidate in (folder / "optimized_poses.txt", folder / "groundtruth.txt", folder):
-        if candidate.exists():
-            try:
-                return fio.read_reference_poses(candidate, count)[0]
-            except ValueError:
-                continue
-    raise ValueError(f"no reference poses for {folder}")
+    candidates = [path] if path is not None else []
+    candidates += [folder / "optimized_poses.txt", folder / "groundtruth.txt", folder]
+    for candidate in candidates:
+        if not candidate.exists():
+            continue
+        try:
+            poses, stamps = fio.read_reference_poses(candidate)
+        except ValueError:
+            continue
+        if poses.shape[0] == count:
+            return poses
+        if stamps is not None and times is not None:
+            frames, matched = fio.associate_timestamps(times, stamps, MAX_TIME_DIFFERENCE)
+            if len(frames) >= 3:
+                full = torch.full((count, 4, 4), torch.nan, dtype=torch.float64)
+                full[torch.from_numpy(frames)] = poses[torch.from_numpy(matched)]
+                return full
+    raise ValueError(f"no reference poses for {folder} (one per frame, or TUM timestamps)")
 
 
 def _errors(poses: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
+    """ATE and RPE over the frames with a reference pose (rows of ``reference`` not NaN)."""
     from torchslam.cli.slam import trajectory_errors
 
-    return trajectory_errors(poses, reference)
+    known = ~reference.flatten(1).isnan().any(1)
+    return trajectory_errors(poses[known], reference[known])
 
 
+# frame_reader's options for depth images (--depth-scale, --intrinsics)
+READ_OPTIONS: dict[str, object] = {}
 ROBUSTNESS = ("full", "every2", "every2+1", "rev", "rev-every2", "rev-every2+1")
 
 
@@ -107,7 +132,7 @@ def _reader(folder: Path, variant: str):
     the frames used, number of frames in the sequence)."""
     from torchslam.slam import frame_reader
 
-    read, count, times, sensor = frame_reader(folder)
+    read, count, times, sensor = frame_reader(folder, **READ_OPTIONS)
     indices = variant_indices(variant, count)
     if times is not None:
         times = np.asarray(times)[indices]
@@ -121,10 +146,11 @@ def run_torchslam(
 ) -> tuple[dict, int, str]:
     """One run with the sensor's defaults (``refine``: the refinement rounds instead) on a
     variant of the sequence (:func:`variant_indices`)."""
-    from torchslam.slam import SLAM, SLAMConfig
+    from torchslam.slam import SLAM, SLAMConfig, frame_reader
 
     torch.set_num_threads(threads)
     read, count, times, sensor, indices, total = _reader(folder, variant)
+    times_all = frame_reader(folder, **READ_OPTIONS)[2]
     overrides = {} if refine is None else {"refine_rounds": refine}
     slam = SLAM(SLAMConfig.for_sensor(sensor, **overrides))
     per_frame, rss = [], []
@@ -151,7 +177,7 @@ def run_torchslam(
         "loops_rejected": len(result.rejected_loops),
         "unreliable": sum(not f.trusted for f in result.frames),
         "slam": (slam, result),
-        "indices": (indices, total),
+        "indices": (indices, total, times_all),
     }
     return record, count, sensor
 
@@ -176,6 +202,8 @@ def loop_fits(slam, result, reference: torch.Tensor) -> list[tuple[int, int, flo
         target, normals = _submap(keyframes, c.first, cfg.loop_window)
         tree = cKDTree(target.numpy())
         a, b = frames[c.first], frames[c.second]
+        if bool(reference[[a, b]].isnan().any()):
+            continue  # a frame with no reference pose (not matched by timestamp)
         truth = se3.compose(se3.inverse(reference[a]), reference[b])
         rms = []
         for Z in (c.measurement, truth):
@@ -268,8 +296,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-plant", action="store_true", help="skip the planted wrong loop closure runs"
     )
+    parser.add_argument(
+        "--depth-scale", type=float, default=1000.0, help="depth units per metre (TUM: 5000)"
+    )
+    parser.add_argument("--intrinsics", type=Path, default=None, help="a 3×3 K as text")
+    parser.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        help="reference poses of a FOLDER sequence (default: its optimized_poses.txt, "
+        "groundtruth.txt or *.pose.txt); TUM timestamps at another rate are matched",
+    )
     parser.add_argument("--out", type=Path, default=Path("out") / "slam_sequences")
     args = parser.parse_args(argv)
+    READ_OPTIONS.update(depth_scale=args.depth_scale)
+    if args.intrinsics is not None:
+        READ_OPTIONS["intrinsics"] = args.intrinsics
     args.out.mkdir(parents=True, exist_ok=True)
     threads = [int(t) for t in args.threads.split(",")]
     peers = not args.no_peers and Path(args.peers_python).exists()
@@ -284,8 +326,8 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         for t in threads:
             record, _, sensor = run_torchslam(folder, t, variant=variant)
-            indices, total = record.pop("indices")
-            reference = _reference(folder, total)[indices]
+            indices, total, times_all = record.pop("indices")
+            reference = _reference(folder, total, times_all, args.reference)[indices]
             odo = _errors(record["odometry_poses"], reference)
             final = _errors(record["poses"], reference)
             series.setdefault(name, record)
