@@ -68,6 +68,7 @@ def test_dense_frames_are_registered_on_a_fixed_subset(sequence):
     again = run_sequence(sequence.clouds[:12], config)
     assert torch.equal(again.odometry_poses, first.odometry_poses)
     assert SLAMConfig.for_sensor("lidar").max_source_points == 4000
+    assert SLAMConfig.for_sensor("depth").max_source_points == 8000
 
 
 def test_joint_refinement_of_the_keyframes(sequence, result):

@@ -801,3 +801,33 @@ def test_associate_timestamps_refuses_bad_times(times, reference, message):
         associate_timestamps(times, reference)
     with pytest.raises(ValueError, match="max_difference"):
         associate_timestamps([1.0], [1.0], max_difference=-1.0)
+
+
+@pytest.mark.parametrize(
+    ("name", "dtype"),
+    [("d.png", np.uint16), ("d8.png", np.uint8), ("d.tif", np.float32), ("d16.tif", np.uint16),
+     ("d.pgm", np.uint16)],
+)  # fmt: skip
+def test_depth_images_read_directly_equal_imageio(tmp_path, name, dtype):
+    # read_depth reads one-frame single-channel images through Pillow directly: the pixels
+    # (and so the points) must be imageio's, bit for bit
+    from torchslam.io.frames import _single_channel_image
+
+    rng = np.random.default_rng(0)
+    high = 1.0 if dtype == np.float32 else np.iinfo(dtype).max
+    image = (rng.random((12, 16)) * high).astype(dtype)
+    iio.imwrite(tmp_path / name, image)
+    direct = _single_channel_image(str(tmp_path / name))
+    expected = iio.imread(tmp_path / name)
+    assert direct is not None and direct.dtype == expected.dtype
+    np.testing.assert_array_equal(direct, expected)
+    K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
+    points = read_depth(tmp_path / name, K, depth_scale=1.0)
+    expected_points = depth_to_points(
+        expected.astype(np.uint16) if expected.dtype == np.int32 else expected, K, depth_scale=1.0
+    )
+    assert torch.equal(points, expected_points)
+    # colour and palette images go through imageio (and are refused or converted as before)
+    Image = pytest.importorskip("PIL.Image")
+    Image.fromarray(np.zeros((4, 4), np.uint8)).convert("P").save(tmp_path / "p.png")
+    assert _single_channel_image(str(tmp_path / "p.png")) is None

@@ -212,6 +212,29 @@ def depth_to_points(
     return torch.from_numpy(np.stack([x, y, z], axis=1))
 
 
+# Pillow's single-channel modes whose pixels np.asarray returns as they are stored (16-bit,
+# 32-bit integer, float, 8-bit): what imageio's Pillow plugin returns for them too.
+_RAW_MODES = ("I;16", "I;16B", "I;16L", "I", "F", "L")
+
+
+def _single_channel_image(where: str) -> np.ndarray | None:
+    """The pixels of a one-frame single-channel image that Pillow opens, read directly (a
+    millisecond per 640×480 frame less than through imageio's plugin lookup); None for
+    anything else (colour, palette, multi-page, a format Pillow does not know), which goes
+    through imageio."""
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow comes with imageio
+        return None
+    try:
+        with Image.open(where) as image:
+            if image.mode not in _RAW_MODES or getattr(image, "n_frames", 1) != 1:
+                return None
+            return np.asarray(image)
+    except Exception:  # Pillow raises many types for a file it cannot decode: imageio says why
+        return None
+
+
 def read_depth(
     path: str | os.PathLike,
     intrinsics: object,
@@ -231,10 +254,14 @@ def read_depth(
         raise ImportError(
             f"{fn}: reading depth images needs imageio (pip install imageio)"
         ) from error
-    try:
-        image = iio.imread(where)
-    except Exception as error:  # imageio raises many types for a file it cannot decode
-        raise _error(fn, where, f"not a readable image ({type(error).__name__}: {error})") from None
+    image = _single_channel_image(where)
+    if image is None:
+        try:
+            image = iio.imread(where)
+        except Exception as error:  # imageio raises many types for a file it cannot decode
+            raise _error(
+                fn, where, f"not a readable image ({type(error).__name__}: {error})"
+            ) from None
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     if image.dtype.kind in "iu" and image.size and 0 <= image.min() and image.max() <= 65535:

@@ -140,7 +140,8 @@ class _AdaptiveGate:
         return min(max(3.0 * math.sqrt(self.sum_squares / self.count), self.minimum), self.maximum)
 
     def update(self, prediction: Tensor, estimate: Tensor, source: Tensor) -> None:
-        deviation = se3.compose(se3.inverse(prediction), estimate)
+        with _checks.validation(False):  # poses odometry made: rigid by construction
+            deviation = se3.compose(se3.inverse(prediction), estimate)
         moved = source @ deviation[:3, :3].T + deviation[:3, 3]
         error = float((moved - source).square().sum(-1).mean().sqrt())
         if error > self.min_motion:
@@ -363,15 +364,17 @@ class Odometry:
         assert self._last is not None
         if self._previous is None or self.config.prediction == "previous":
             return self._last.clone()
-        velocity = se3.compose(se3.inverse(self._previous), self._last)
-        return se3.compose(self._last, velocity)
+        with _checks.validation(False):  # poses odometry made: rigid by construction
+            velocity = se3.compose(se3.inverse(self._previous), self._last)
+            return se3.compose(self._last, velocity)
 
     def _advance(self, pose: Tensor) -> None:
         self._previous, self._last = self._last, pose
 
     def _moved_enough(self, pose: Tensor) -> bool:
         cfg = self.config
-        motion = se3.compose(se3.inverse(self.keyframes[-1].pose), pose)
+        with _checks.validation(False):  # poses odometry made: rigid by construction
+            motion = se3.compose(se3.inverse(self.keyframes[-1].pose), pose)
         return (
             float(motion[:3, 3].norm()) > cfg.keyframe_translation
             or _angle_deg(motion) > cfg.keyframe_rotation_deg
