@@ -57,6 +57,19 @@ _TIMESTAMP_NAMES = ("times.txt", "timestamps.txt", "depth.txt", "associations.tx
 _INVALID_DEPTH_CODE = 65535
 
 
+def _float_array(fn: str, name: str, value: object, expected: str) -> np.ndarray:
+    """``value`` (a tensor, array or nested sequence) as a float64 numpy array; TypeError
+    naming ``fn``, the argument and ``expected`` when it holds no numbers."""
+    if isinstance(value, Tensor):
+        return value.detach().cpu().to(torch.float64).numpy()
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(
+            f"{fn}: argument '{name}' must be {expected}, got {_checks.describe(value)}"
+        ) from None
+
+
 def _natural_key(path: Path) -> tuple:
     parts = re.split(r"([0-9]+)", path.name)
     # numbers compare as numbers (the ASCII digit runs only); the name breaks ties (a01, a1)
@@ -79,16 +92,7 @@ def check_intrinsics(fn: str, intrinsics: object, name: str = "intrinsics") -> T
     Raises ``ValueError`` (naming ``fn`` and the argument) for another shape, non-finite values,
     fx or fy ≤ 0, a bottom row other than (0, 0, 1) or a non-zero K[1, 0]/K[2, :2].
     """
-    if isinstance(intrinsics, Tensor):
-        array = intrinsics.detach().cpu().to(torch.float64).numpy()
-    else:
-        try:
-            array = np.asarray(intrinsics, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"{fn}: argument '{name}' must be a 3×3 K or (fx, fy, cx, cy), got "
-                f"{_checks.describe(intrinsics)}"
-            ) from None
+    array = _float_array(fn, name, intrinsics, "a 3×3 K or (fx, fy, cx, cy)")
     if array.shape == (4,):
         fx, fy, cx, cy = array
         array = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -628,15 +632,7 @@ def associate_timestamps(
     fn = "associate_timestamps"
     arrays = []
     for name, value in (("times", times), ("reference_times", reference_times)):
-        if isinstance(value, Tensor):
-            value = value.detach().cpu().numpy()
-        try:
-            array = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"{fn}: argument {name!r} must be a 1-D sequence of numbers, got "
-                f"{_checks.describe(value)}"
-            ) from None
+        array = _float_array(fn, name, value, "a 1-D sequence of numbers")
         if array.ndim != 1 or array.size == 0:
             raise ValueError(
                 f"{fn}: argument {name!r} must be a non-empty 1-D sequence of times, got shape "
