@@ -493,3 +493,19 @@ def test_batched_point_terms_equal_separate_solves():
         assert abs(float(batched.final_cost[b]) - float(alone[b].final_cost[0])) <= 1e-12
         assert torch.allclose(batched.points[b], alone[b].points[0], rtol=0, atol=1e-9)
         assert torch.allclose(batched.pose_tangent[b], alone[b].pose_tangent[0], rtol=0, atol=1e-9)
+
+
+def test_block_linearization_assembles_the_jacobian_in_place_bit_for_bit(generator, monkeypatch):
+    """Plain tensors take the in-place [J_ξ | J_X] assembly, tensors that record autograd
+    history (or torch.func's) the concatenation: the same bits either way."""
+    from torchslam.solver import linearize as module
+
+    problem = _mixed_problem(generator, loss=HuberLoss(0.3))
+    data = problem.data
+    xi, X = problem.pose_tangent.detach(), problem.points.detach()
+    in_place = linearize(xi, X, data, whitening_factors(data), "analytic", False)
+    monkeypatch.setattr(module, "_plain", lambda *tensors: False)
+    concatenated = linearize(xi, X, data, whitening_factors(data), "analytic", False)
+    for name in ("cost", "pose_gradient", "point_gradient", "pose_blocks", "point_blocks"):
+        assert torch.equal(getattr(in_place, name), getattr(concatenated, name)), name
+    assert not module._plain(xi.clone().requires_grad_())

@@ -372,3 +372,37 @@ def test_screening_options_are_checked():
     # with the screening off every pose comes from the main alignment
     result = run_sequence(make_sequence(8, seed=1).clouds, SLAMConfig(start_rotation_deg=0.0))
     assert all(f.start == 0 for f in result.frames)
+
+
+def test_judging_from_the_icp_lookups_equals_a_fresh_query():
+    """Odometry judges an alignment from the last ICP run's lookups (neighbors._Matcher):
+    its certified answers are those of a fresh KD-tree query, so every measure equals
+    alignment_quality's bit for bit, at the pose ICP left and at poses away from it (where
+    the certificates fail and the points are looked up again)."""
+    from torchslam.registration import alignment_quality
+    from torchslam.registration import quality as _quality
+
+    clouds = make_sequence(6, seed=2).clouds
+    odometry = Odometry(SLAMConfig.for_sensor("lidar"))
+    for cloud in clouds[:-1]:
+        odometry.add(cloud)
+    _, source = odometry._preprocess(odometry._check_points("test", clouds[-1])[0])
+    prediction = odometry._predict()
+    result = odometry._icp(source, prediction, 0.75)
+    target, normals = odometry.map.state()
+    gate = 0.75
+    turn = se3.exp(torch.tensor([0.0, 0.0, 0.05, 0.3, -0.2, 0.1], dtype=torch.float64))
+    for T in (result.transform, result.transform @ turn, prediction):
+        lookups = odometry._lookups
+        assert lookups is not None and lookups[0] is source
+        got = _quality._measure(
+            "test", source, target, normals, T, gate, odometry._thresholds, 0.025,
+            odometry.map.tree, lookups[1],
+        )  # fmt: skip
+        want = alignment_quality(
+            source, target, normals, T, gate, odometry._thresholds, noise_floor=0.025
+        )
+        assert (got.fitness, got.rms, got.condition, got.inliers, got.problem) == (
+            want.fitness, want.rms, want.condition, want.inliers, want.problem,
+        )  # fmt: skip
+        assert torch.equal(got.information, want.information)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -141,3 +142,23 @@ def test_input_validation(generator):
         tracks.build_tracks(clouds, poses, 0.1, pairs=[(0, 0)])
     with pytest.raises(TypeError, match="float32"):
         tracks.build_tracks([clouds[0], clouds[1].float()], poses, 0.1)
+
+
+def test_greedy_components_label_every_point_by_its_root():
+    """The labels are the union-find roots: a chain merged against its order (deep trees
+    before path compression) ends in one component labelled by one of its points, a
+    refused merge (two points of one scan) keeps two components apart."""
+    from torchslam.registration.tracks import _greedy_components
+
+    total = 64
+    scan = np.arange(total)  # every point its own scan: no merge is refused
+    row, col = np.arange(total - 1, 0, -1), np.arange(total - 2, -1, -1)
+    label, refused = _greedy_components(row, col, scan, total)
+    assert refused == 0 and len(set(label.tolist())) == 1 and 0 <= label[0] < total
+    # points 0, 1 in scan 0 and 2, 3 in scan 1: 0–2 and 1–3 merge, 0–1 would repeat a scan
+    label, refused = _greedy_components(
+        np.array([0, 1, 0]), np.array([2, 3, 1]), np.array([0, 0, 1, 1]), 4
+    )
+    assert refused == 1
+    assert label[0] == label[2] and label[1] == label[3] and label[0] != label[1]
+    assert label[0] in (0, 2) and label[1] in (1, 3)

@@ -446,16 +446,19 @@ def _run(
     config: ICPConfig,
     target_normals: Tensor | None,
     tree: cKDTree | None = None,
+    matcher: _Matcher | None = None,
 ) -> ICPResult:
     """The ICP loop on checked arguments; an empty batch gives an empty result. ``tree``: a
     KD-tree of ``target`` built earlier (a local map registered against frame after frame);
-    built here when None."""
+    built here when None. ``matcher``: a fresh :class:`_Matcher` of ``tree`` for this batch
+    and source size, made by the caller so that it can reuse the lookups of the last pass
+    afterwards (alignment_quality's); made here when None."""
     if initial.shape[0] == 0:
         empty = source.new_zeros(0)
         none = torch.zeros(0, dtype=torch.int64)
         return ICPResult(initial.clone(), empty, empty, empty, none, none, source.new_zeros(1, 0))
     with _checks.validation(False), _host_threads():
-        return _icp_loop(fn, source, target, initial, config, target_normals, tree)
+        return _icp_loop(fn, source, target, initial, config, target_normals, tree, matcher)
 
 
 @contextlib.contextmanager
@@ -485,6 +488,7 @@ def _icp_loop(
     config: ICPConfig,
     target_normals: Tensor | None,
     tree: cKDTree | None = None,
+    matcher: _Matcher | None = None,
 ) -> ICPResult:
     """One pass per iteration: nearest neighbours (KD-tree lookups on :func:`query_workers`
     threads for the points not certain to keep theirs, :class:`_Matcher`) for the runs still
@@ -495,7 +499,8 @@ def _icp_loop(
     n = source.shape[0]
     if tree is None:
         tree = _tree(fn, "target", target)
-    matcher = _Matcher(tree, _host(fn, "target", target), batch, n)
+    if matcher is None:
+        matcher = _Matcher(tree, _host(fn, "target", target), batch, n)
     T = initial.clone()
     infinite = math.inf if config.max_distance is None else config.max_distance
     gate = source.new_full((batch,), infinite)

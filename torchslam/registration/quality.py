@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
-from torchslam.registration.neighbors import _host, _query_host, _tree
+from torchslam.registration.neighbors import _host, _Matcher, _query_host, _tree
 
 __all__ = ["AlignmentQuality", "QualityThresholds", "alignment_quality"]
 
@@ -118,12 +118,38 @@ def alignment_quality(
             f"{fn}: argument 'thresholds' must be a QualityThresholds or None, got "
             f"{_checks.describe(thresholds)}"
         )
+    if tree is None:
+        tree = _tree(fn, "target", target)
+    return _measure(fn, source, target, target_normals, transform, gate, thresholds,
+                    noise_floor, tree)  # fmt: skip
+
+
+def _measure(
+    fn: str,
+    source: Tensor,
+    target: Tensor,
+    target_normals: Tensor,
+    transform: Tensor,
+    gate: float,
+    thresholds: QualityThresholds,
+    noise_floor: float,
+    tree: cKDTree,
+    matcher: _Matcher | None = None,
+) -> AlignmentQuality:
+    """:func:`alignment_quality` on checked arguments. ``matcher``: a
+    :class:`~torchslam.registration.neighbors._Matcher` of one run of ``source``'s size on
+    ``tree`` (an ICP's, left near ``transform``): its certified answers replace most of the
+    lookups, the same nearest neighbours as a fresh query (its class docstring)."""
     T = transform.detach().to(torch.float64).cpu().numpy()
     p = _host(fn, "source", source)
     moved = p @ T[:3, :3].T + T[:3, 3]
-    if tree is None:
-        tree = _tree(fn, "target", target)
-    _, index = _query_host(tree, moved, gate)
+    if matcher is None:
+        _, index = _query_host(tree, moved, gate)
+    else:
+        # the query's semantics: a neighbour counts when strictly within the gate
+        distance, found = matcher(np.zeros(1, np.int64), torch.from_numpy(moved)[None],
+                                  np.array([gate]), fn, "source")  # fmt: skip
+        index = np.where(distance[0].numpy() < gate, found[0].numpy(), -1)
     hit = index >= 0
     inliers = int(hit.sum())
     fitness = inliers / len(p)

@@ -180,8 +180,14 @@ def _greedy_components(
             continue
         parent[rb] = ra
         scans[ra] |= scans[rb]
-    label = np.fromiter((find(x) for x in range(total)), dtype=np.int64, count=total)
-    return label, refused
+    # Every point's root by pointer jumping (parents point to their roots after
+    # ⌈log₂ depth⌉ rounds): the labels find() gives, without a Python call per point.
+    label = np.asarray(parent, dtype=np.int64)
+    while True:
+        jumped = label[label]
+        if np.array_equal(jumped, label):
+            return label, refused
+        label = jumped
 
 
 def build_tracks(

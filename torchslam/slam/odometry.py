@@ -52,12 +52,9 @@ from torch import Tensor
 from torchslam import _checks
 from torchslam.lie import se3, so3
 from torchslam.registration import icp as _icp
-from torchslam.registration.neighbors import _downsample, _normals, _query_host
-from torchslam.registration.quality import (
-    AlignmentQuality,
-    QualityThresholds,
-    alignment_quality,
-)
+from torchslam.registration import quality as _quality
+from torchslam.registration.neighbors import _downsample, _Matcher, _normals, _query_host
+from torchslam.registration.quality import AlignmentQuality, QualityThresholds
 from torchslam.slam.config import SLAMConfig
 from torchslam.slam.local_map import LocalMap
 
@@ -231,6 +228,8 @@ class Odometry:
         )
         self._previous: Tensor | None = None  # T_w(k−2)
         self._last: Tensor | None = None  # T_w(k−1)
+        # (frame points, the lookups of the last single ICP run on them), see _judge
+        self._lookups: tuple[Tensor, _Matcher] | None = None
 
     # ------------------------------------------------------------------ public
 
@@ -399,14 +398,23 @@ class Odometry:
         )
         target, normals = self.map.state()
         batch = initial if initial.dim() == 3 else initial[None]
-        result = _icp._run("Odometry.add", source, target, batch, config, normals, self.map.tree)
+        matcher = _Matcher(self.map.tree, target.numpy(), batch.shape[0], source.shape[0])
+        result = _icp._run(
+            "Odometry.add", source, target, batch, config, normals, self.map.tree, matcher
+        )
+        # A run of one frame: its lookups, left at the final pose, serve the judging after it.
+        self._lookups = (source, matcher) if initial.dim() == 2 else None
         return result if initial.dim() == 3 else result[0]
 
     def _judge(self, source: Tensor, T: Tensor) -> AlignmentQuality:
         target, normals = self.map.state()
-        return alignment_quality(
-            source, target, normals, T, JUDGE_VOXELS * self.config.voxel, self._thresholds,
-            noise_floor=0.1 * self.config.voxel, tree=self.map.tree,
+        # The last single run's lookups on this frame, when there is one: the same
+        # neighbours as a fresh query (neighbors._Matcher), most of them without a lookup.
+        lookups = self._lookups
+        matcher = lookups[1] if lookups is not None and lookups[0] is source else None
+        return _quality._measure(
+            "Odometry.add", source, target, normals, T, JUDGE_VOXELS * self.config.voxel,
+            self._thresholds, 0.1 * self.config.voxel, self.map.tree, matcher,
         )  # fmt: skip
 
     @staticmethod

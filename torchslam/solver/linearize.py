@@ -450,13 +450,28 @@ def _no_observations(poses, points, data):
     )
 
 
+def _plain(*tensors: Tensor) -> bool:
+    """No tensor records autograd history or is wrapped by a torch.func transform."""
+    return not any(
+        t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(t) for t in tensors
+    )
+
+
 def _blocks(r, J_xi, J_X, factor, free_pose, free_point, data):
     """The point observations in the block form: :func:`instance_blocks` with one pose and
     one point per instance (the observations as a :class:`~torchslam.terms.PointObservationTerm`
     with the data's whitening and kernel)."""
     B = data.pose_index.shape[0]
     m, n = data.num_poses, data.num_points
-    J = torch.cat((J_xi * free_pose[..., None, None], J_X * free_point[..., None, None]), -1)
+    free_pose, free_point = free_pose[..., None, None], free_point[..., None, None]
+    if _plain(J_xi, J_X):
+        # [J_ξ·free pose | J_X·free point] written in place: the bits of torch.cat of the
+        # two products, without their temporaries (half the time on 10⁵–10⁶ observations).
+        J = J_xi.new_empty((*J_xi.shape[:-1], 9))
+        torch.mul(J_xi, free_pose, out=J[..., :6])
+        torch.mul(J_X, free_point, out=J[..., 6:])
+    else:  # out= takes part in neither autograd nor torch.func transforms
+        J = torch.cat((J_xi * free_pose, J_X * free_point), -1)
     whitening = None
     if data.information is not None:
         whitening = factor if factor is not None and factor.dim() == 4 else None
