@@ -177,6 +177,46 @@ def test_refine_takes_given_normals_and_skips_covariances(critter):
         registration.refine(small, truth[:4], cfg, normals=normals[0])
 
 
+def test_refine_takes_given_interior_masks(critter):
+    truth, clouds = critter
+    small = [icp.voxel_downsample(c, VOXEL) for c in clouds[:4]]
+    cfg = config(rounds=1)
+    normals = [icp.estimate_normals(c, min(cfg.normal_neighbors, len(c))) for c in small]
+    # the masks refine computes itself, given: the same tracks, so the same solve bit for bit
+    interior = [
+        ~registration.boundary_mask(c, cfg.normal_neighbors, cfg.boundary_threshold, n)
+        for c, n in zip(small, normals, strict=True)
+    ]
+    default = registration.refine(small, truth[:4], cfg, normals=normals, covariances=False)
+    given = registration.refine(
+        small, truth[:4], cfg, normals=normals, covariances=False, interior=interior
+    )
+    assert torch.equal(given.poses, default.poses)
+    # every point kept: the solve without the boundary test, whatever config says
+    everything = [torch.ones(len(c), dtype=torch.bool) for c in small]
+    all_points = registration.refine(
+        small, truth[:4], cfg, normals=normals, covariances=False, interior=everything
+    )
+    unmasked = registration.refine(
+        small,
+        truth[:4],
+        config(rounds=1, boundary_threshold=None),
+        normals=normals,
+        covariances=False,
+    )
+    assert torch.equal(all_points.poses, unmasked.poses)
+    with pytest.raises(TypeError, match=r"refine: argument 'interior' must be a sequence"):
+        registration.refine(small, truth[:4], cfg, interior=interior[0])
+    with pytest.raises(ValueError, match=r"refine: argument 'interior' must hold one mask"):
+        registration.refine(small, truth[:4], cfg, interior=interior[:3])
+    with pytest.raises(TypeError, match=r"refine: argument 'interior\[2\]' must be a bool"):
+        registration.refine(
+            small, truth[:4], cfg, interior=[*interior[:2], interior[2].double(), interior[3]]
+        )
+    with pytest.raises(ValueError, match=r"refine: argument 'interior\[1\]' must have shape"):
+        registration.refine(small, truth[:4], cfg, interior=[interior[0], interior[1][:5]] * 2)
+
+
 def test_zero_rounds_returns_chained_poses(critter):
     _, clouds = critter
     names = [f"s{i}" for i in range(3)]

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from tests.test_cli import assert_one_line_error, call
-from torchslam import metrics
+from torchslam import metrics, registration
 from torchslam.data import make_sequence
 from torchslam.lie import se3
 from torchslam.slam import SLAM, FrameStatus, Odometry, SLAMConfig, run_sequence
@@ -85,6 +85,25 @@ def test_joint_refinement_of_the_keyframes(sequence, result):
     R = refined.keyframe_poses[:, :3, :3]
     eye = torch.eye(3, dtype=torch.float64).expand_as(R)
     torch.testing.assert_close(R @ R.transpose(-1, -2), eye, rtol=0, atol=1e-12)
+
+
+def test_keyframes_carry_the_refinements_boundary_test(sequence):
+    # With the refinement on, each keyframe keeps the boundary test of refine's tracks, made
+    # from its normals' neighbourhoods: the same mask as boundary_mask on its points with its
+    # normals (the same k nearest, whose distances are distinct in noisy samples, so the same
+    # neighbourhoods in the same order); off, none is computed.
+    config = SLAMConfig.for_sensor("lidar", refine_rounds=1, loops=False)
+    odometry = Odometry(config)
+    for cloud in sequence.clouds[:6]:
+        odometry.add(cloud)
+    threshold = registration.RegisterConfig.boundary_threshold
+    for keyframe in odometry.keyframes:
+        k = min(config.normal_neighbors, keyframe.points.shape[0])
+        expected = ~registration.boundary_mask(keyframe.points, k, threshold, keyframe.normals)
+        assert keyframe.interior is not None and torch.equal(keyframe.interior, expected)
+    plain = Odometry(SLAMConfig.for_sensor("lidar", refine_rounds=0, loops=False))
+    plain.add(sequence.clouds[0])
+    assert plain.keyframes[0].interior is None
 
 
 def test_loop_closures_found_and_correct(sequence, result):

@@ -221,15 +221,51 @@ def estimate_normals(
 
 def _normals(fn: str, points: Tensor, k: int, viewpoint: Tensor | None) -> Tensor:
     """estimate_normals on checked arguments (``fn`` names the public function)."""
+    return _normals_and_neighbours(fn, points, k, viewpoint)[0]
+
+
+def _normals_and_neighbours(
+    fn: str, points: Tensor, k: int, viewpoint: Tensor | None
+) -> tuple[Tensor, np.ndarray, np.ndarray]:
+    """:func:`_normals` and the k-nearest query it made: (normals (N, 3), distances (N, k)
+    float64 ascending, indices (N, k) int64), for a caller with more to compute from the same
+    neighbourhoods (:func:`_boundary_from_neighbours`)."""
     flat = _host(fn, "points", points)
     tree = cKDTree(flat, balanced_tree=False, compact_nodes=True)  # see _tree
-    _, index = _query_host(tree, flat, None, k)
+    distance, index = _query_host(tree, flat, None, k)
     normals = torch.from_numpy(_smallest_eigenvectors(flat, index))
     normals = normals.to(dtype=points.dtype, device=points.device)
     if viewpoint is not None:
         facing = ((viewpoint - points) * normals).sum(-1, keepdim=True)
         normals = torch.where(facing < 0, -normals, normals)
-    return normals
+    return normals, distance, index
+
+
+def _boundary_from_neighbours(
+    points: np.ndarray,
+    distance: np.ndarray,
+    index: np.ndarray,
+    threshold: float,
+    normals: np.ndarray | None = None,
+) -> np.ndarray:
+    """The boundary test of :func:`~torchslam.registration.pipeline.boundary_mask` from a
+    k-nearest query made already (e.g. for the normals): ``points`` (N, 3) float64,
+    ``distance``/``index`` (N, k) of the k ≥ 2 nearest neighbours of each point among
+    ``points`` (the point itself first, distances ascending), ``normals`` (N, 3) float64 of
+    any sign, or None for the PCA of each neighbourhood → bool (N,), True on the boundary.
+    The arguments are not checked (an internal step; ``boundary_mask`` checks them)."""
+    local = points[index]  # (N, k, 3)
+    centroid = local.mean(1)
+    # Only the offset along the surface counts: on a curved surface the centroid also lies
+    # off the point along the normal (the smallest principal axis of the neighbourhood).
+    if normals is None:
+        centred = local - centroid[:, None]
+        _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+        normals = vectors[..., 0]
+    offset = centroid - points
+    offset -= (offset * normals).sum(-1, keepdims=True) * normals
+    spacing = distance[:, 1:].mean(1)
+    return np.linalg.norm(offset, axis=-1) > threshold * spacing
 
 
 def _smallest_eigenvectors(points: np.ndarray, index: np.ndarray) -> np.ndarray:

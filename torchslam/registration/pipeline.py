@@ -69,6 +69,7 @@ from torchslam.registration.config import (
     check_poses,
     scan_scale,
 )
+from torchslam.registration.neighbors import _boundary_from_neighbours
 from torchslam.registration.report import alignment_residual
 from torchslam.registration.tracks import Tracks, build_tracks
 from torchslam.solver import SolverConfig, Status, solve
@@ -649,20 +650,10 @@ def boundary_mask(
             )
     k = min(neighbors, points.shape[0])
     distance, index = cKDTree(x).query(x, k=k, workers=icp.query_workers())
-    local = x[index]  # (N, k, 3)
-    centroid = local.mean(1)
-    # Only the offset along the surface counts: on a curved surface the centroid also lies
-    # off the point along the normal (the smallest principal axis of the neighbourhood).
-    if normals is None:
-        centred = local - centroid[:, None]
-        _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-        normal = vectors[..., 0]
-    else:
-        normal = normals.detach().cpu().numpy().astype(np.float64, copy=False)
-    offset = centroid - x
-    offset -= (offset * normal).sum(-1, keepdims=True) * normal
-    spacing = distance[:, 1:].mean(1)
-    return torch.from_numpy(np.linalg.norm(offset, axis=-1) > threshold * spacing).to(points.device)
+    if normals is not None:
+        normals = normals.detach().cpu().numpy().astype(np.float64, copy=False)
+    mask = _boundary_from_neighbours(x, distance, index, threshold, normals)
+    return torch.from_numpy(mask).to(points.device)
 
 
 def information_matrices(normals: Tensor, tangent_weight: float) -> Tensor:
@@ -780,6 +771,7 @@ def refine(
     progress: Progress | None = None,
     normals: Sequence[Tensor] | None = None,
     covariances: bool = True,
+    interior: Sequence[Tensor] | None = None,
 ) -> RefineResult:
     """Joint ICP-SLAM refinement: rounds of point tracks + the point-map least-squares solve.
 
@@ -795,6 +787,11 @@ def refine(
             ``config.normal_neighbors`` neighbours).
         covariances: compute :attr:`RefineResult.pose_covariances` (a marginalization of
             the last round's Hessian); False leaves them None.
+        interior: the points of each cloud that may make tracks (m bool tensors of shape
+            (N_i,)), e.g. computed with the normals at an earlier stage
+            (:class:`torchslam.slam.Odometry`'s keyframes); by default those off the scans'
+            boundaries (:func:`boundary_mask` with ``config.boundary_threshold``; every point
+            when it is None). Given masks are used whatever ``config.boundary_threshold`` is.
 
     Returns:
         :class:`RefineResult`, poses in the frame of scan 0 (its pose is the gauge).
@@ -821,14 +818,17 @@ def refine(
         normals = [icp.estimate_normals(c, min(config.normal_neighbors, len(c))) for c in clouds]
     else:
         normals = _check_normals(fn, normals, clouds)
-    if config.boundary_threshold is not None:
-        # Tracks only on interior points; Tracks.source_index then indexes these subsets.
+    if interior is not None:
+        interior = _check_interior(fn, interior, clouds)
+    elif config.boundary_threshold is not None:
         interior = [
             ~boundary_mask(
                 c, config.normal_neighbors, config.boundary_threshold, n if given else None
             )
             for c, n in zip(clouds, normals, strict=True)
         ]
+    if interior is not None:
+        # Tracks only on interior points; Tracks.source_index then indexes these subsets.
         clouds = [c[keep] for c, keep in zip(clouds, interior, strict=True)]
         normals = [n[keep] for n, keep in zip(normals, interior, strict=True)]
     solver = SolverConfig(max_iterations=config.max_iterations, function_tolerance=1e-8)
@@ -901,6 +901,33 @@ def _check_normals(fn: str, normals: object, clouds: Sequence[Tensor]) -> list[T
                 f"{tuple(c.shape)}, got {tuple(n.shape)}"
             )
         checked.append(n)
+    return checked
+
+
+def _check_interior(fn: str, interior: object, clouds: Sequence[Tensor]) -> list[Tensor]:
+    if isinstance(interior, (str, bytes)) or not isinstance(interior, Sequence):
+        raise TypeError(
+            f"{fn}: argument 'interior' must be a sequence of bool (N,) tensors or None, got "
+            f"{_checks.describe(interior)}"
+        )
+    if len(interior) != len(clouds):
+        raise ValueError(
+            f"{fn}: argument 'interior' must hold one mask per cloud ({len(clouds)}), got "
+            f"{len(interior)}"
+        )
+    checked = []
+    for k, (mask, c) in enumerate(zip(interior, clouds, strict=True)):
+        if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+            raise TypeError(
+                f"{fn}: argument 'interior[{k}]' must be a bool tensor, got "
+                f"{_checks.describe(mask)}"
+            )
+        if mask.shape != c.shape[:1]:
+            raise ValueError(
+                f"{fn}: argument 'interior[{k}]' must have shape ({c.shape[0]},) (one entry per "
+                f"point of clouds[{k}]), got {tuple(mask.shape)}"
+            )
+        checked.append(mask.to(c.device))
     return checked
 
 

@@ -224,6 +224,11 @@ def _refine(
         pairs=sorted(pairs),
         normals=[kf.normals for kf in keyframes],
         covariances=False,
+        # the boundary test made with the normals (the same neighbourhoods), when every
+        # keyframe has it
+        interior=None
+        if any(kf.interior is None for kf in keyframes)
+        else [kf.interior for kf in keyframes],
     )
     if not result.rounds:
         return poses, 0, float("nan")

@@ -53,7 +53,14 @@ from torchslam import _checks
 from torchslam.lie import se3, so3
 from torchslam.registration import icp as _icp
 from torchslam.registration import quality as _quality
-from torchslam.registration.neighbors import _downsample, _Matcher, _normals, _query_host
+from torchslam.registration.config import RegisterConfig
+from torchslam.registration.neighbors import (
+    _boundary_from_neighbours,
+    _downsample,
+    _Matcher,
+    _normals_and_neighbours,
+    _query_host,
+)
 from torchslam.registration.quality import AlignmentQuality, QualityThresholds
 from torchslam.slam.config import SLAMConfig
 from torchslam.slam.local_map import LocalMap
@@ -121,6 +128,9 @@ class Keyframe:
     normals: Tensor
     # information of the tracking alignment (6, 6), (ω, v), right perturbation, scaled
     information: Tensor
+    # the points off the cloud's boundary, bool (N,) (from the normals' neighbourhoods, for the
+    # joint refinement's tracks); None when the refinement is off
+    interior: Tensor | None = None
 
 
 class _AdaptiveGate:
@@ -497,8 +507,20 @@ class Odometry:
         cfg = self.config
         k = min(cfg.normal_neighbors, source.shape[0])
         origin = source.new_zeros(3)
-        normals = _normals("Odometry.add", source, k, origin)
-        keyframe = Keyframe(info.index, info.pose, source, normals, information)
+        normals, distance, index = _normals_and_neighbours("Odometry.add", source, k, origin)
+        interior = None
+        if cfg.refine_rounds > 0:  # the boundary test of refine, from the same neighbourhoods
+            threshold = RegisterConfig.boundary_threshold
+            if threshold is not None:
+
+                def host(t: Tensor) -> np.ndarray:
+                    return t.detach().cpu().numpy().astype(np.float64, copy=False)
+
+                boundary = _boundary_from_neighbours(
+                    host(source), distance, index, threshold, host(normals)
+                )
+                interior = torch.from_numpy(~boundary).to(source.device)
+        keyframe = Keyframe(info.index, info.pose, source, normals, information, interior)
         self.keyframes.append(keyframe)
         info.is_keyframe = True
         info.anchor = len(self.keyframes) - 1
