@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from torchslam.lie import se3
 from torchslam.registration import icp, neighbors
+from torchslam.registration.kdtree import KDTree
 
 F64 = torch.float64
 
@@ -28,10 +29,10 @@ def _wavy(count: int, generator: torch.Generator) -> torch.Tensor:
 
 
 class _CountingTree:
-    """A cKDTree that counts the points it is asked about."""
+    """The library's KDTree, counting the points it is asked about."""
 
     def __init__(self, points: np.ndarray) -> None:
-        self.tree = cKDTree(points)
+        self.tree = KDTree(points)
         self.asked = 0
 
     def query(self, x, **kwargs):

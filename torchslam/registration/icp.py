@@ -13,7 +13,7 @@ best fraction of the gated correspondences, as in trimmed ICP). Point-to-plane I
 
 Several initial guesses are run together as one batch (one KD-tree query and one batched
 Kabsch per iteration for all of them); :func:`icp_multistart` keeps the one with the best
-fitness. The ICP loop runs on the host (scipy's KD-tree); it is not meant for jacrev or vmap.
+fitness. The ICP loop runs on the host (a KD-tree); it is not meant for jacrev or vmap.
 Near convergence most points skip the KD-tree: a point that moved less than half the gap
 between its nearest and second-nearest target point keeps its nearest one, which is then
 certain (``neighbors._Matcher``); the correspondences are those of a full query.
@@ -33,13 +33,13 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.alignment import weighted_kabsch
 from torchslam.lie import convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TukeyLoss
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import (
     _WORKERS,
     _downsample,
@@ -445,7 +445,7 @@ def _run(
     initial: Tensor,
     config: ICPConfig,
     target_normals: Tensor | None,
-    tree: cKDTree | None = None,
+    tree: KDTree | None = None,
     matcher: _Matcher | None = None,
 ) -> ICPResult:
     """The ICP loop on checked arguments; an empty batch gives an empty result. ``tree``: a
@@ -487,7 +487,7 @@ def _icp_loop(
     initial: Tensor,
     config: ICPConfig,
     target_normals: Tensor | None,
-    tree: cKDTree | None = None,
+    tree: KDTree | None = None,
     matcher: _Matcher | None = None,
 ) -> ICPResult:
     """One pass per iteration: nearest neighbours (KD-tree lookups on :func:`query_workers`

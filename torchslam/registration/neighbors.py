@@ -2,7 +2,7 @@
 
 The preprocessing that ICP (:mod:`torchslam.registration.icp`), the point tracks
 (:mod:`torchslam.registration.tracks`) and the multiview pipeline share. Neighbour queries run
-on the host with scipy's KD-tree (never an O(N·M) distance matrix), on
+on the host with a KD-tree (:mod:`torchslam.registration.kdtree`; never an O(N·M) matrix), on
 ``torch.get_num_threads()`` threads (:func:`query_workers`); they are not meant for jacrev or
 vmap. Clouds are (N, 3) torch tensors or numpy arrays (float32/float64), in any
 frame: nothing here knows about poses.
@@ -14,10 +14,10 @@ import math
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam.registration.kdtree import KDTree
 
 __all__ = ["estimate_normals", "nearest_neighbors", "query_workers", "voxel_downsample"]
 
@@ -92,12 +92,8 @@ def _host(fn: str, name: str, points: Tensor) -> np.ndarray:
     return array
 
 
-def _tree(fn: str, name: str, points: Tensor) -> cKDTree:
-    # Sliding-midpoint splits (balanced_tree=False) without node shrinking build about twice
-    # as fast as the median splits and answer the ICP queries faster on scan data; the
-    # answers are the same exact nearest neighbours. (Shrunk nodes answer a cloud's
-    # k-nearest queries about itself about 15 % faster: :func:`_normals` uses them.)
-    return cKDTree(_host(fn, name, points), balanced_tree=False, compact_nodes=False)
+def _tree(fn: str, name: str, points: Tensor) -> KDTree:
+    return KDTree(_host(fn, name, points))
 
 
 # Thread counts of the callers that run their tensor algebra on one thread (innermost last).
@@ -127,7 +123,8 @@ def query_workers(count: int | None = None) -> int:
 def nearest_neighbors(
     query: Tensor, reference: Tensor, max_distance: float | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Nearest reference point of every query point, with a KD-tree (scipy cKDTree).
+    """Nearest reference point of every query point, with a KD-tree
+    (:class:`~torchslam.registration.kdtree.KDTree`).
 
     Args:
         query: points, shape (..., 3), finite; a torch tensor or a numpy array
@@ -154,7 +151,7 @@ def nearest_neighbors(
 
 
 def _query(
-    tree: cKDTree,
+    tree: KDTree,
     query: Tensor,
     max_distance: float | None,
     k: int = 1,
@@ -172,7 +169,7 @@ def _query(
 
 
 def _query_host(
-    tree: cKDTree, flat: np.ndarray, max_distance: float | None, k: int = 1
+    tree: KDTree, flat: np.ndarray, max_distance: float | None, k: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_query` on a finite float64 array (n, 3): distances (float64) and int64 indices,
     shape (n,) for k = 1, else (n, k); a missing neighbour is (inf, −1)."""
@@ -231,7 +228,7 @@ def _normals_and_neighbours(
     float64 ascending, indices (N, k) int64), for a caller with more to compute from the same
     neighbourhoods (:func:`_boundary_from_neighbours`)."""
     flat = _host(fn, "points", points)
-    tree = cKDTree(flat, balanced_tree=False, compact_nodes=True)  # see _tree
+    tree = KDTree(flat)
     distance, index = _query_host(tree, flat, None, k)
     normals = torch.from_numpy(_smallest_eigenvectors(flat, index))
     normals = normals.to(dtype=points.dtype, device=points.device)
@@ -350,7 +347,7 @@ class _Matcher:
     # stay certainly unmatched under small motions.
     BOUND_FACTOR = 1.0625
 
-    def __init__(self, tree: cKDTree, target: np.ndarray, batch: int, n: int) -> None:
+    def __init__(self, tree: KDTree, target: np.ndarray, batch: int, n: int) -> None:
         self.tree = tree
         self.target = target
         self.target_size = float(np.abs(target).max()) if target.size else 0.0

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import _host, _Matcher, _query_host, _tree
 
 __all__ = ["AlignmentQuality", "QualityThresholds", "alignment_quality"]
@@ -81,7 +81,7 @@ def alignment_quality(
     thresholds: QualityThresholds | None = None,
     *,
     noise_floor: float = 0.0,
-    tree: cKDTree | None = None,
+    tree: KDTree | None = None,
 ) -> AlignmentQuality:
     """Measure the alignment ``transform`` of ``source`` onto ``target`` (module docstring).
 
@@ -133,7 +133,7 @@ def _measure(
     gate: float,
     thresholds: QualityThresholds,
     noise_floor: float,
-    tree: cKDTree,
+    tree: KDTree,
     matcher: _Matcher | None = None,
 ) -> AlignmentQuality:
     """:func:`alignment_quality` on checked arguments. ``matcher``: a

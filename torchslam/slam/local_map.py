@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
+
+from torchslam.registration.kdtree import KDTree
 
 __all__ = ["LocalMap"]
 
@@ -59,7 +60,7 @@ class LocalMap:
         self._keyframes: deque[_Keyframe] = deque()
         self.points = torch.zeros(0, 3, dtype=torch.float64)
         self.normals = torch.zeros(0, 3, dtype=torch.float64)
-        self.tree: cKDTree | None = None
+        self.tree: KDTree | None = None
 
     def __len__(self) -> int:
         return self.points.shape[0]
@@ -108,7 +109,7 @@ class LocalMap:
         points, normals = points[first], normals[first]
         self.points = torch.from_numpy(np.ascontiguousarray(points))
         self.normals = torch.from_numpy(np.ascontiguousarray(normals))
-        self.tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+        self.tree = KDTree(points)
 
     def state(self) -> tuple[Tensor, Tensor]:
         """The merged map: points and unit normals, (M, 3) each, world frame."""

@@ -31,12 +31,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3, so3
 from torchslam.registration import icp as _icp
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.quality import AlignmentQuality, QualityThresholds, alignment_quality
 from torchslam.slam.config import SLAMConfig
 from torchslam.slam.odometry import JUDGE_VOXELS, Keyframe
@@ -123,7 +123,7 @@ def _verify_loop(
         _checks.check_int(fn, name, value, minimum=0, maximum=len(keyframes) - 1)
     target, normals = _submap(keyframes, first, config.loop_window)
     source = keyframes[second].points
-    tree = cKDTree(target.numpy(), balanced_tree=False, compact_nodes=False)
+    tree = KDTree(target.numpy())
     T = keyframes[second].pose.clone()
     gates = [config.loop_gate, config.loop_gate / 3, config.loop_gate / 9, 2 * config.voxel]
     with _checks.validation(False):

@@ -46,7 +46,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
@@ -54,6 +53,7 @@ from torchslam.lie import se3, so3
 from torchslam.registration import icp as _icp
 from torchslam.registration import quality as _quality
 from torchslam.registration.config import RegisterConfig
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import (
     _boundary_from_neighbours,
     _downsample,
@@ -169,7 +169,7 @@ def turned_starts(T: Tensor, degrees: float, axes: str = "xyz") -> Tensor:
     return turned
 
 
-def tight_overlap(tree: cKDTree, sample: Tensor, transforms: Tensor, bound: float) -> Tensor:
+def tight_overlap(tree: KDTree, sample: Tensor, transforms: Tensor, bound: float) -> Tensor:
     """Fraction of the points ``sample`` (n, 3), moved by each of ``transforms`` (S, 4, 4),
     with a point of ``tree`` within ``bound``: (S,). A tighter overlap than the judging
     gate's, it tells the right basin from a neighbouring one whose RMS looks as good."""
