@@ -19,12 +19,12 @@ from typing import Literal
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.losses import CauchyLoss, HuberLoss
 from torchslam.registration import icp
+from torchslam.registration.kdtree import KDTree
 
 __all__ = ["RegisterConfig", "ScanScale", "auto_voxel_size", "default_stages", "scan_scale"]
 
@@ -258,7 +258,7 @@ def scan_scale(
                 f"{fn}: scan {label!r}: all {len(x)} points coincide; not a scan of a surface"
             )
         probe = x[:: max(1, len(x) // sample)]
-        distance, _ = cKDTree(x).query(probe, k=2, workers=icp.query_workers())
+        distance, _ = KDTree(x).query(probe, k=2, workers=icp.query_workers())
         gaps = distance[:, 1]
         gaps = gaps[gaps > 0]
         h = float(np.median(gaps)) if len(gaps) else r

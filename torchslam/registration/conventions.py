@@ -23,12 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
 from torchslam.registration.config import check_clouds, check_poses
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import query_workers
 
 __all__ = ["InvertedPosesWarning", "PoseDirectionCheck", "check_problem_poses", "check_scan_poses"]
@@ -110,7 +110,7 @@ def check_scan_poses(
 
     def misfit(T: Tensor) -> float:
         world = [se3.act(T[i], clouds[i]).cpu().numpy() for i in range(m)]
-        trees = [cKDTree(w) for w in world]
+        trees = [KDTree(w) for w in world]
         best = []
         for i in range(m):
             for k in range(i + 1, m):

@@ -1,11 +1,13 @@
 """The KD-tree of the nearest-neighbour lookups: pykdtree, with scipy cKDTree's conventions.
 
-ICP, odometry and its local map spend most of their lookups here: pykdtree builds a tree of
-a LiDAR map about 2× and answers its k = 1 queries about 2× faster than scipy's cKDTree on
-one thread (``experiments/kdtree_speed.py``), with the same neighbours and the same distances
-bit for bit (both compute ‖x − y‖ as the square root of the sum of the three squared
-differences, in float64). :class:`KDTree` gives its answers in cKDTree's form, so that callers
-are unchanged:
+Every lookup of the library runs here (ICP, odometry's local map, normals, loop checks, point
+tracks): pykdtree builds a tree of a LiDAR or depth map and answers its k = 1, 2 and 10
+queries 1.4–1.8× faster than scipy's cKDTree, on one thread or two
+(``experiments/kdtree_speed.py``), with the same distances bit for bit (both compute ‖x − y‖
+as the square root of the sum of the three squared differences, in float64) and the same
+neighbours but where two distances tie, which it may order differently (depth frames, whose
+points lie on a pixel lattice, have many such ties). :class:`KDTree` answers in cKDTree's
+form:
 
 - ``distance`` float64, ``index`` int64 (not pykdtree's uint32), shape (n,) for k = 1, else
   (n, k), ascending;

@@ -51,7 +51,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
@@ -69,6 +68,7 @@ from torchslam.registration.config import (
     check_poses,
     scan_scale,
 )
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import _boundary_from_neighbours
 from torchslam.registration.report import alignment_residual
 from torchslam.registration.tracks import Tracks, build_tracks
@@ -587,7 +587,7 @@ def overlapping_pairs(
     distance = _checks.check_real(fn, "distance", distance, low=0, low_open=True)
     _checks.check_real(fn, "min_overlap", min_overlap, low=0, high=1)
     world = [se3.act(poses[i], clouds[i]).detach().cpu().numpy() for i in range(m)]
-    trees = [cKDTree(w) for w in world]
+    trees = [KDTree(w) for w in world]
     overlap = np.eye(m)
     for i, k in itertools.permutations(range(m), 2):
         d, _ = trees[k].query(world[i], distance_upper_bound=distance, workers=icp.query_workers())
@@ -649,7 +649,7 @@ def boundary_mask(
                 f"{tuple(points.shape)}, got {tuple(normals.shape)}"
             )
     k = min(neighbors, points.shape[0])
-    distance, index = cKDTree(x).query(x, k=k, workers=icp.query_workers())
+    distance, index = KDTree(x).query(x, k=k, workers=icp.query_workers())
     if normals is not None:
         normals = normals.detach().cpu().numpy().astype(np.float64, copy=False)
     mask = _boundary_from_neighbours(x, distance, index, threshold, normals)

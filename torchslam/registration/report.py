@@ -13,13 +13,13 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.io.stanford import pose_errors
 from torchslam.lie import se3
 from torchslam.registration.config import check_clouds, check_poses
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import estimate_normals, query_workers
 
 __all__ = ["alignment_residual", "error_table", "plane_distances"]
@@ -58,7 +58,7 @@ def _plane_distances(
     normals = [estimate_normals(c, min(normal_neighbors, len(c))) for c in clouds]
     world = [se3.act(poses[i], clouds[i]).detach().cpu().numpy() for i in range(m)]
     world_normals = [(normals[i] @ poses[i, :3, :3].T).detach().cpu().numpy() for i in range(m)]
-    trees = [cKDTree(w) for w in world]
+    trees = [KDTree(w) for w in world]
     out = [np.zeros(0)]
     for a, b in pairs:
         for i, k in ((a, b), (b, a)):

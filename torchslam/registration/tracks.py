@@ -33,11 +33,11 @@ import numpy as np
 import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.lie import se3
+from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import _host, query_workers
 
 __all__ = ["Tracks", "build_tracks", "mutual_nearest_neighbors"]
@@ -132,15 +132,15 @@ def mutual_nearest_neighbors(first: Tensor, second: Tensor, radius: float) -> Te
 def _mutual(
     a: np.ndarray,
     b: np.ndarray,
-    tree_a: cKDTree | None,
-    tree_b: cKDTree | None,
+    tree_a: KDTree | None,
+    tree_b: KDTree | None,
     radius: float,
 ) -> np.ndarray:
     """(K, 2) mutual nearest-neighbour index pairs between point arrays a and b."""
     if len(a) == 0 or len(b) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    tree_a = cKDTree(a) if tree_a is None else tree_a
-    tree_b = cKDTree(b) if tree_b is None else tree_b
+    tree_a = KDTree(a) if tree_a is None else tree_a
+    tree_b = KDTree(b) if tree_b is None else tree_b
     workers = query_workers()
     _, ab = tree_b.query(a, distance_upper_bound=radius, workers=workers)  # missing: len(b)
     _, ba = tree_a.query(b, distance_upper_bound=radius, workers=workers)  # missing: len(a)
@@ -258,7 +258,7 @@ def build_tracks(
 
     dtype, device = clouds[0].dtype, clouds[0].device
     world = [_host(fn, "poses", se3.act(poses[i], clouds[i])) for i in range(m)]
-    trees = [cKDTree(w) if len(w) else None for w in world]
+    trees = [KDTree(w) if len(w) else None for w in world]
     sizes = np.array([len(w) for w in world], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes)))
     total = int(offsets[-1])
