@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import threading
 
 import numpy as np
 
@@ -80,11 +81,11 @@ class KDTree:
 
 
 @functools.cache
-def _runtime():
-    """threadpoolctl's handle of the OpenMP runtime pykdtree's queries run in: its own copy
-    when the wheel bundles one (found by path), else every OpenMP runtime loaded (a shared
-    one: each limit is restored after the query, so torch's count is unchanged); None when
-    none is loaded or threadpoolctl cannot tell."""
+def _runtime() -> tuple[object, bool] | None:
+    """threadpoolctl's handle of the OpenMP runtime pykdtree's queries run in and whether it
+    is pykdtree's own: its own copy when the wheel bundles one (found by path), else every
+    OpenMP runtime loaded (a shared one, whose limit is restored after each query so that
+    torch's count is unchanged); None when none is loaded."""
     import pykdtree.kdtree  # noqa: F401 -- loads its OpenMP runtime
     from threadpoolctl import ThreadpoolController
 
@@ -92,15 +93,27 @@ def _runtime():
     runtimes = [lib for lib in controller.info() if lib.get("internal_api") == "openmp"]
     own = [lib for lib in runtimes if "pykdtree" in str(lib.get("filepath", ""))]
     if own:
-        return controller.select(filepath=[lib["filepath"] for lib in own])
+        return controller.select(filepath=[lib["filepath"] for lib in own]), True
     if runtimes:
-        return controller.select(internal_api="openmp")
+        return controller.select(internal_api="openmp"), False
     return None
+
+
+# The thread count last set on pykdtree's own runtime, per Python thread (OpenMP keeps the
+# setting per calling thread; nothing else uses that runtime, so it stays set).
+_OWN = threading.local()
 
 
 def _threads(workers: int):
     """A context in which pykdtree's queries run on ``workers`` threads."""
-    runtime = _runtime()
-    if runtime is None:
+    found = _runtime()
+    if found is None:
         return contextlib.nullcontext()
-    return runtime.limit(limits=max(1, int(workers)))
+    runtime, own = found
+    workers = max(1, int(workers))
+    if not own:
+        return runtime.limit(limits=workers)
+    if getattr(_OWN, "threads", None) != workers:  # ~50 µs a call: set only on a change
+        runtime.limit(limits=workers)
+        _OWN.threads = workers
+    return contextlib.nullcontext()
