@@ -6,7 +6,7 @@ Checked by what a fresh interpreter has imported, not by timing (timings depend 
 import subprocess
 import sys
 
-HEAVY = ("pytorch_kinematics", "scipy", "matplotlib", "lxml", "absl")
+HEAVY = ("pytorch_kinematics", "scipy", "matplotlib", "lxml", "absl", "pykdtree", "threadpoolctl")
 
 
 def _modules_after(code: str) -> set[str]:
