@@ -881,17 +881,24 @@ def refine(
     return RefineResult(poses, rounds, tracks, pairs, clouds, normals, config, pose_covariances)
 
 
-def _check_normals(fn: str, normals: object, clouds: Sequence[Tensor]) -> list[Tensor]:
-    if isinstance(normals, (str, bytes)) or not isinstance(normals, Sequence):
+def _per_cloud(fn: str, name: str, value: object, clouds: Sequence[Tensor], kind: str, item: str):
+    """``value`` as a sequence of one entry per cloud (``kind``: what the entries are, for the
+    messages; ``item``: one entry's name)."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
         raise TypeError(
-            f"{fn}: argument 'normals' must be a sequence of (N, 3) tensors or None, got "
-            f"{_checks.describe(normals)}"
+            f"{fn}: argument '{name}' must be a sequence of {kind} or None, got "
+            f"{_checks.describe(value)}"
         )
-    if len(normals) != len(clouds):
+    if len(value) != len(clouds):
         raise ValueError(
-            f"{fn}: argument 'normals' must hold one tensor per cloud ({len(clouds)}), got "
-            f"{len(normals)}"
+            f"{fn}: argument '{name}' must hold one {item} per cloud ({len(clouds)}), got "
+            f"{len(value)}"
         )
+    return value
+
+
+def _check_normals(fn: str, normals: object, clouds: Sequence[Tensor]) -> list[Tensor]:
+    normals = _per_cloud(fn, "normals", normals, clouds, "(N, 3) tensors", "tensor")
     checked = []
     for k, (n, c) in enumerate(zip(normals, clouds, strict=True)):
         n = _checks.as_points(fn, f"normals[{k}]", n, like=c)
@@ -905,16 +912,7 @@ def _check_normals(fn: str, normals: object, clouds: Sequence[Tensor]) -> list[T
 
 
 def _check_interior(fn: str, interior: object, clouds: Sequence[Tensor]) -> list[Tensor]:
-    if isinstance(interior, (str, bytes)) or not isinstance(interior, Sequence):
-        raise TypeError(
-            f"{fn}: argument 'interior' must be a sequence of bool (N,) tensors or None, got "
-            f"{_checks.describe(interior)}"
-        )
-    if len(interior) != len(clouds):
-        raise ValueError(
-            f"{fn}: argument 'interior' must hold one mask per cloud ({len(clouds)}), got "
-            f"{len(interior)}"
-        )
+    interior = _per_cloud(fn, "interior", interior, clouds, "bool (N,) tensors", "mask")
     checked = []
     for k, (mask, c) in enumerate(zip(interior, clouds, strict=True)):
         if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
