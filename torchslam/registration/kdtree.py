@@ -18,8 +18,9 @@ form:
 Threads: pykdtree parallelizes a query with OpenMP in its own runtime, which ``torch``'s
 thread setting does not reach. Each query runs on exactly ``workers`` threads (the caller's
 :func:`~torchslam.registration.neighbors.query_workers`: torch's count, less the cores other
-work keeps busy), set through ``threadpoolctl`` and restored after it, so the library's one
-thread policy (``torchslam._threads``) holds here too.
+work keeps busy), set through ``threadpoolctl``: on pykdtree's own runtime (the wheels bundle
+one) only when the count changes, on a runtime shared with other libraries around each query,
+restored after it. So the library's one thread policy (``torchslam._threads``) holds here too.
 """
 
 from __future__ import annotations
@@ -64,17 +65,19 @@ class KDTree:
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
         m = x.shape[0]
         found = min(k, self.n)
-        distance = np.full((m, k), np.inf)
-        index = np.full((m, k), self.n, dtype=np.int64)
-        if found and m:
+        if found == k and m:
             bound = None if distance_upper_bound == np.inf else float(distance_upper_bound)
             with _threads(workers):
-                d, i = self._tree.query(x, k=found, distance_upper_bound=bound)
-            d = d.reshape(m, found)
-            i = i.reshape(m, found)
-            distance[:, :found] = d
+                d, i = self._tree.query(x, k=k, distance_upper_bound=bound)
             # pykdtree's miss index is its size too; in int64 rather than its uint32
-            index[:, :found] = i
+            distance, index = d.reshape(m, k), i.astype(np.int64).reshape(m, k)
+        else:  # an empty query, or fewer points than k: the rest padded with misses
+            distance = np.full((m, k), np.inf)
+            index = np.full((m, k), self.n, dtype=np.int64)
+            if found and m:
+                d, i = self.query(x, found, distance_upper_bound, workers)
+                distance[:, :found] = d.reshape(m, found)
+                index[:, :found] = i.reshape(m, found)
         if k == 1:
             return distance[:, 0], index[:, 0]
         return distance, index

@@ -57,6 +57,7 @@ from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import (
     _boundary_from_neighbours,
     _downsample,
+    _host,
     _Matcher,
     _normals_and_neighbours,
     _query_host,
@@ -509,17 +510,14 @@ class Odometry:
         origin = source.new_zeros(3)
         normals, distance, index = _normals_and_neighbours("Odometry.add", source, k, origin)
         interior = None
-        if cfg.refine_rounds > 0:  # the boundary test of refine, from the same neighbourhoods
-            threshold = RegisterConfig.boundary_threshold
-            if threshold is not None:
-
-                def host(t: Tensor) -> np.ndarray:
-                    return t.detach().cpu().numpy().astype(np.float64, copy=False)
-
-                boundary = _boundary_from_neighbours(
-                    host(source), distance, index, threshold, host(normals)
-                )
-                interior = torch.from_numpy(~boundary).to(source.device)
+        threshold = RegisterConfig.boundary_threshold  # refine's, from the same neighbourhoods
+        if cfg.refine_rounds > 0 and threshold is not None:
+            fn = "Odometry.add"
+            boundary = _boundary_from_neighbours(
+                _host(fn, "points", source), distance, index, threshold,
+                _host(fn, "normals", normals),
+            )  # fmt: skip
+            interior = torch.from_numpy(~boundary).to(source.device)
         keyframe = Keyframe(info.index, info.pose, source, normals, information, interior)
         self.keyframes.append(keyframe)
         info.is_keyframe = True
