@@ -362,3 +362,19 @@ def test_bunny_pairwise_chain_small(monkeypatch):
     assert float(rotation_deg.max()) < 0.5
     assert float(translation.max()) < 1e-3  # metres
     assert all(float(r.fitness) > 0.5 for r in result.pair_results)
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "tukey"])
+def test_kernel_weights_equal_the_losses_weight(generator, kernel):
+    # ICP's IRLS weights skip the loss's argument checks only: the same ρ' on the same clamped
+    # scale, so the values must be equal bit for bit (no tolerance), across both branches of
+    # each kernel (residuals far inside and beyond the scale) and scales at the clamp bounds.
+    from torchslam.losses import CauchyLoss, HuberLoss, TukeyLoss
+
+    kind = {"huber": HuberLoss, "cauchy": CauchyLoss, "tukey": TukeyLoss}[kernel]
+    residual = torch.randn(4, 500, generator=generator, dtype=torch.float64)
+    residual = residual * torch.tensor([1e-3, 1.0, 1e3, 1e-150], dtype=torch.float64)[:, None]
+    scale = torch.tensor([0.3, 1.0, 1e-320, 1e308], dtype=torch.float64)
+    got = icp._kernel_weights(kernel, residual, scale)
+    expected = kind(scale).weight(residual * residual)
+    assert torch.equal(got, expected)

@@ -159,16 +159,19 @@ class ICPConfig:
 _KERNELS = ("none", "huber", "cauchy", "tukey")
 
 
+# One instance of each kernel: _kernel_weights calls its ρ' on an aligned scale directly.
+_KERNEL_TYPES = {"huber": HuberLoss, "cauchy": CauchyLoss, "tukey": TukeyLoss}
+_KERNEL_INSTANCES = {name: kind(1.0) for name, kind in _KERNEL_TYPES.items()}
+
+
 def _kernel_weights(kernel: str, residual: Tensor, scale: Tensor) -> Tensor:
-    """IRLS weights ρ'(r²) of a robust kernel, residual (B, N), scale (B,) > 0."""
-    s = residual * residual
-    if kernel == "huber":
-        loss: object = HuberLoss(scale)
-    elif kernel == "cauchy":
-        loss = CauchyLoss(scale)
-    else:
-        loss = TukeyLoss(scale)
-    return loss.weight(s)  # type: ignore[attr-defined]
+    """IRLS weights ρ'(r²) of a robust kernel, residual (B, N), scale (B,) > 0: the kernel's
+    ``weight(r², scale)`` bit for bit (the same ρ' on the same clamped scale), without its
+    argument checks (both come from the loop, finite by construction), which cost as much as
+    the weights on one frame."""
+    info = torch.finfo(residual.dtype)
+    aligned = scale.clamp(info.tiny, info.max)[:, None]
+    return _KERNEL_INSTANCES[kernel]._weight_scaled(residual * residual, aligned)
 
 
 class ICPStatus(enum.IntEnum):
@@ -400,9 +403,9 @@ def _point_to_plane_step(
     # skips its branches; a Gauss-Newton increment leaves them only on degenerate data.
     fast = float(delta.abs().max()) <= 2.0**20 if delta.numel() else True
     step = se3._exp(delta) if fast else se3._exp_robust(delta)
-    # Rotate about the centroid: Trans(c) exp(δ) Trans(−c).
-    shift = step[:, :3, 3] + centroid - (step[:, :3, :3] @ centroid[..., None]).squeeze(-1)
-    return se3.from_rotation_translation(step[:, :3, :3], shift)
+    # Rotate about the centroid: Trans(c) exp(δ) Trans(−c) (step is exp's fresh tensor).
+    step[:, :3, 3] = step[:, :3, 3] + centroid - (step[:, :3, :3] @ centroid[..., None]).squeeze(-1)
+    return step
 
 
 def icp_batch(
