@@ -108,8 +108,8 @@ def _relative_term(T_i: Tensor, T_j: Tensor, Z: Tensor) -> tuple[Term, Tensor]:
 
 
 def _prior_case(kind: str, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
-    """(T, Z, ξ): "hard" has Z⁻¹T = Exp(ξ) over the hard twists, plus T = Z (r = 0 bit for
-    bit); "random" is random with ξ = Log(Z⁻¹T)."""
+    """(T, Z, ξ): "hard" has Z⁻¹T = Exp(ξ) over the hard twists, plus T = Z (r = 0 to
+    round-off); "random" is random with ξ = Log(Z⁻¹T)."""
     if kind == "hard":
         xi = _hard_twists(g)
         Z = _with_translation_scales(_random_poses(xi.shape[0] + 1, g), g)
@@ -205,10 +205,14 @@ def test_hard_residuals_have_the_hard_angles(case, generator):
         term, P = _prior_term(*inputs)
     r, _ = term_jacobians(term, P, "analytic")
     angles = r[0, :, :3].norm(dim=-1)
-    assert bool((r[0, -1] == 0).all())
+    scale = 1 + _scale(term, P)[0]
+    # The last instance has T = Z: its residual is zero to round-off, not bit for bit. The
+    # product Z⁻¹T is the identity only up to the rounding of a matmul, which depends on the
+    # machine's kernels (FMA or not): 5e-26 on a translation of this size on one AMD machine,
+    # exactly 0 on others. Round-off of that product is below ε times the translations.
+    assert float(r[0, -1].abs().max()) <= 1e-15 * float(scale[-1])
     assert bool(((angles > 5e-10) & (angles < 2e-9)).any())
     assert angles.max() > math.pi - 2e-6 and angles.max() < math.pi
-    scale = 1 + _scale(term, P)[0]
     assert bool(((r[0] - xi).abs().amax(-1) <= 1e-15 * scale).all())
 
 
