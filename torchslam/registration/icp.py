@@ -32,12 +32,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from torchslam import _checks
 from torchslam.alignment import weighted_kabsch
-from torchslam.lie import convert, se3, so3
+from torchslam.lie import _series, convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TukeyLoss
 from torchslam.registration.kdtree import KDTree
 from torchslam.registration.neighbors import (
@@ -346,6 +347,9 @@ def _prepare(
     return source, target, initial, config, normals
 
 
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
 def _move(T: Tensor, points: Tensor) -> Tensor:
     """R p + t for every pose and point: T (B, 4, 4), points (N, 3) → (B, N, 3)."""
     return points @ T[:, :3, :3].transpose(-1, -2) + T[:, None, :3, 3]
@@ -368,13 +372,19 @@ def _inlier_mask(distance: Tensor, gate: Tensor, trim_fraction: float) -> Tensor
 
 
 def _point_to_plane_step(
-    moved: Tensor, matched: Tensor, normals: Tensor, mask: Tensor, weights: Tensor | None = None
+    moved: Tensor,
+    matched: Tensor,
+    normals: Tensor,
+    mask: Tensor,
+    weights: Tensor | None = None,
+    residual: Tensor | None = None,
 ) -> Tensor:
     """Increment ΔT minimizing Σ (n · (ΔT p − q))² to first order over the kept pairs, (B, 4, 4).
 
     ΔT = exp(δ) about the centroid c of the kept points (for conditioning), δ = (ω, v): with
     p' ≈ p + ω × (p − c) + v, r = n·(p − q) + ((p − c) × n)·ω + n·v, so J = [(p − c) × n, n]
-    and δ solves the Gauss–Newton normal equations JᵀJ δ = −Jᵀ r.
+    and δ solves the Gauss–Newton normal equations JᵀJ δ = −Jᵀ r. ``residual``: the
+    distances n·(p − q), (B, N), when the caller has them (:func:`_plane_distances`).
     """
     w = mask.to(moved.dtype)  # (B, N)
     count = w.sum(-1, keepdim=True).clamp_min(1.0)  # (B, 1)
@@ -382,19 +392,15 @@ def _point_to_plane_step(
     if weights is not None:
         w = torch.where(mask, weights, torch.zeros_like(weights))
     arm = moved - centroid[:, None]
-    offset = moved - matched
-    residual = (
-        offset[..., 0] * normals[..., 0]
-        + offset[..., 1] * normals[..., 1]
-        + offset[..., 2] * normals[..., 2]
-    )
+    if residual is None:
+        residual = _plane_distances(moved, matched, normals)
     # [J | r], (B, N, 7): one product gives both JᵀWJ and JᵀWr.
     augmented = torch.cat((torch.linalg.cross(arm, normals), normals, residual[..., None]), -1)
     products = (augmented * w[..., None]).transpose(-1, -2) @ augmented  # (B, 7, 7)
     H, g = products[:, :6, :6], products[:, :6, 6:]
     # A tiny ridge keeps H invertible for degenerate overlaps (a plane leaves 3 directions
     # free; there g vanishes and they stay put). Rows without data get H = I, g = 0.
-    eye = torch.eye(6, dtype=H.dtype, device=H.device)
+    eye = _series.constant("icp eye 6", torch.eye(6).tolist, H.dtype, H.device)
     scale = H.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
     empty = scale <= 0
     H = torch.where(empty, eye, H + 1e-12 * scale * eye)
@@ -406,6 +412,16 @@ def _point_to_plane_step(
     # Rotate about the centroid: Trans(c) exp(δ) Trans(−c) (step is exp's fresh tensor).
     step[:, :3, 3] = step[:, :3, 3] + centroid - (step[:, :3, :3] @ centroid[..., None]).squeeze(-1)
     return step
+
+
+def _plane_distances(moved: Tensor, matched: Tensor, normals: Tensor) -> Tensor:
+    """Signed point-to-plane distances n·(p − q), (B, N) from (B, N, 3) each."""
+    offset = moved - matched
+    return (
+        offset[..., 0] * normals[..., 0]
+        + offset[..., 1] * normals[..., 1]
+        + offset[..., 2] * normals[..., 2]
+    )
 
 
 def icp_batch(
@@ -497,7 +513,9 @@ def _icp_loop(
     threads for the points not certain to keep theirs, :class:`_Matcher`) for the runs still
     going, their inlier statistics, the stop tests and the update. A run that
     stops keeps the correspondences of its last pass (its final statistics need no extra
-    query)."""
+    query). The per-run bookkeeping (rows still going, statuses, iteration counts, the stop
+    tests) is on the host, in numpy: a few numbers per run, which the matcher's host
+    lookups synchronize every pass anyway; each would cost a tensor operation or several."""
     batch = initial.shape[0]
     n = source.shape[0]
     if tree is None:
@@ -507,52 +525,70 @@ def _icp_loop(
     T = initial.clone()
     infinite = math.inf if config.max_distance is None else config.max_distance
     gate = source.new_full((batch,), infinite)
-    status = torch.full((batch,), int(ICPStatus.RUNNING), dtype=torch.int64)
-    iterations = torch.zeros(batch, dtype=torch.int64)
-    previous_rms = source.new_full((batch,), math.inf)
+    running, converged = int(ICPStatus.RUNNING), int(ICPStatus.CONVERGED)
+    status = np.full(batch, running, dtype=np.int64)
+    iterations = np.zeros(batch, dtype=np.int64)
+    # in the source's dtype, so that the relative test below rounds as the RMS does
+    previous_rms = np.full(batch, np.inf, dtype=_NUMPY_DTYPES[source.dtype])
     rms_all = source.new_zeros(batch)
-    count_all = torch.zeros(batch, dtype=torch.int64)
+    count_all = torch.zeros(batch, dtype=torch.int64, device=source.device)
     history: list[Tensor] = []
     zero = source.new_zeros(())
-    rows = torch.arange(batch)
+    rows = np.arange(batch)  # the runs still going, increasing
+    centroid = source.mean(0)  # the step tolerances' lever
 
     while True:
         # Correspondences of the runs still going (rows), at their current transforms.
-        T_rows, gate_rows = T[rows], gate[rows]
+        whole = len(rows) == batch
+        if whole:
+            T_rows, gate_rows = T, gate
+        else:
+            picked = torch.from_numpy(rows).to(source.device)
+            T_rows, gate_rows = T[picked], gate[picked]
         moved = _move(T_rows, source)
-        distance, index = matcher(rows.numpy(), moved, gate_rows.cpu().numpy(), fn, "source")
+        distance, index = matcher(rows, moved, gate_rows.cpu().numpy(), fn, "source")
         mask = _inlier_mask(distance, gate_rows, config.trim_fraction)
         count = mask.sum(-1)
         squared = torch.where(mask, distance, zero) ** 2
         rms = torch.sqrt(squared.sum(-1) / count.clamp_min(1).to(source.dtype))
-        rms_all[rows] = rms
-        count_all[rows] = count
+        if whole:
+            rms_all.copy_(rms)
+            count_all.copy_(count)
+        else:
+            rms_all[picked] = rms
+            count_all[picked] = count
         history.append(rms_all.clone())
         # Stop tests (every row here is running).
-        few = count < config.min_correspondences
+        rms_host, count_host = rms.cpu().numpy(), count.cpu().numpy()
+        few = count_host < config.min_correspondences
         # Signed: an RMS that went up (noise floor, a flip of the trimmed set) also stops.
         previous = previous_rms[rows]
-        settled = torch.isfinite(previous) & (
-            previous - rms <= config.relative_tolerance * previous
+        settled = np.isfinite(previous) & (
+            previous - rms_host <= previous.dtype.type(config.relative_tolerance) * previous
         )
         # An exact fit (rms = 0) needs no update.
-        settled = ~few & (settled | (rms == 0))
+        settled = ~few & (settled | (rms_host == 0))
         capped = ~few & ~settled & (iterations[rows] >= config.max_iterations)
-        code = torch.full_like(rows, int(ICPStatus.RUNNING))
-        code[few] = int(ICPStatus.TOO_FEW_CORRESPONDENCES)
-        code[settled] = int(ICPStatus.CONVERGED)
-        code[capped] = int(ICPStatus.MAX_ITERATIONS)
+        code = np.select(
+            (few, settled, capped),
+            (int(ICPStatus.TOO_FEW_CORRESPONDENCES), converged, int(ICPStatus.MAX_ITERATIONS)),
+            running,
+        )
         status[rows] = code
-        go = code == int(ICPStatus.RUNNING)
-        if not bool(go.any()):
+        go = code == running
+        if not go.any():
             break
-        if not bool(go.all()):
-            rows, T_rows, gate_rows = rows[go], T_rows[go], gate_rows[go]
-            moved, distance, index = moved[go], distance[go], index[go]
-            mask, rms = mask[go], rms[go]
-        safe_index = index.clamp_min(0)
-        matched = target[safe_index]  # (B, N, 3); unmatched rows are masked out
-        weights = None
+        if not go.all():
+            kept = torch.from_numpy(np.flatnonzero(go)).to(source.device)
+            rows, rms_host, whole = rows[go], rms_host[go], False
+            T_rows, gate_rows = T_rows[kept], gate_rows[kept]
+            moved, distance, index = moved[kept], distance[kept], index[kept]
+            mask, rms = mask[kept], rms[kept]
+        # (B, N, 3); unmatched rows are masked out (index_select: the same rows, a fraction of
+        # advanced indexing's cost)
+        safe_index = index.clamp_min(0).reshape(-1)
+        matched = target.index_select(0, safe_index).view(moved.shape)
+        weights = step = None
         if config.method == "point_to_point":
             if config.kernel != "none":
                 weights = _kernel_weights(
@@ -564,33 +600,50 @@ def _icp_loop(
             )
         else:
             assert target_normals is not None
-            normals = target_normals[safe_index]
+            normals = target_normals.index_select(0, safe_index).view(moved.shape)
+            plane = _plane_distances(moved, matched, normals)
             if config.kernel != "none":
-                plane = ((moved - matched) * normals).sum(-1)
                 weights = _kernel_weights(config.kernel, plane, _scale(config, rms))
-            step = _point_to_plane_step(moved, matched, normals, mask, weights)
-            T_new = se3.compose(step, T_rows)
-        T[rows] = T_new
+            step = _point_to_plane_step(moved, matched, normals, mask, weights, plane)
+            T_new = step @ T_rows
+        if whole:
+            T = T_new  # a fresh tensor; T_rows keeps the transforms before the update
+        else:
+            T[torch.from_numpy(rows).to(source.device)] = T_new
         iterations[rows] += 1
-        previous_rms[rows] = rms
+        previous_rms[rows] = rms_host
         if config.gate_scale is not None:
             shrunk = torch.clamp(config.gate_scale * rms, min=config.min_distance)
-            gate[rows] = torch.minimum(gate_rows, shrunk)
+            gate_new = torch.minimum(gate_rows, shrunk)
+            if whole:
+                gate = gate_new
+            else:
+                gate[torch.from_numpy(rows).to(source.device)] = gate_new
         if config.rotation_tolerance_deg is not None:
-            small = _small_steps(T_rows, T_new, source.mean(0), config)
-            if bool(small.any()):
-                status[rows[small]] = int(ICPStatus.CONVERGED)
+            # The increment: the point-to-plane step, or T_new T⁻¹ of the absolute solve.
+            delta = step if step is not None else T_new @ se3.inverse(T_rows)
+            small = _small_steps(delta, T_rows, centroid, config).cpu().numpy()
+            if small.any():
+                status[rows[small]] = converged
                 rows = rows[~small]
-                if rows.numel() == 0:
+                if len(rows) == 0:
                     break
 
     fitness = count_all.to(source.dtype) / n
-    return ICPResult(T, rms_all, fitness, gate, iterations, status, torch.stack(history))
+    return ICPResult(
+        T,
+        rms_all,
+        fitness,
+        gate,
+        torch.from_numpy(iterations),
+        torch.from_numpy(status),
+        torch.stack(history),
+    )
 
 
-def _small_steps(before: Tensor, after: Tensor, centroid: Tensor, config: ICPConfig) -> Tensor:
-    """Updates below the step tolerances: rotation angle and motion of the source centroid."""
-    delta = after @ se3.inverse(before)
+def _small_steps(delta: Tensor, before: Tensor, centroid: Tensor, config: ICPConfig) -> Tensor:
+    """Updates ``delta`` (B, 4, 4; the new transform is delta · before) below the step
+    tolerances: rotation angle and motion of the source centroid (3,) placed by ``before``."""
     cos = ((delta[:, 0, 0] + delta[:, 1, 1] + delta[:, 2, 2] - 1) / 2).clamp(-1.0, 1.0)
     angle = torch.rad2deg(torch.acos(cos))
     moved = before[:, :3, :3] @ centroid + before[:, :3, 3]
