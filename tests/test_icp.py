@@ -226,6 +226,33 @@ def test_batch_equals_single_runs(generator, true_transform):
         assert int(single.status) == int(batch.status[b])
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_point_to_plane_batch_equals_single_runs(generator, true_transform, dtype):
+    # The odometry's configuration: a Cauchy kernel and step tolerances, so that runs stop
+    # after different numbers of passes (some on the step test, some on the RMS test) and the
+    # loop continues on the remaining rows; each row must still be its own run.
+    source, target = views(generator, true_transform, noise=0.001, count=1200)
+    source, target = source.to(dtype), target.to(dtype)
+    normals = icp.estimate_normals(target, 10)
+    initial = se3.exp(0.05 * torch.randn(5, 6, generator=generator, dtype=F64)).to(dtype)
+    initial[0] = true_transform.to(dtype)  # starts at the answer: stops at once
+    config = ICPConfig(
+        method="point_to_plane", max_distance=0.5, gate_scale=None, kernel="cauchy",
+        kernel_scale=0.1, max_iterations=25, rotation_tolerance_deg=0.01,
+        translation_tolerance=1e-4,
+    )  # fmt: skip
+    batch = icp.icp_batch(source, target, initial, config, normals)
+    assert len(set(batch.iterations.tolist())) > 1  # the rows stopped at different passes
+    for b in range(5):
+        single = icp.icp(source, target, initial[b], config, normals)
+        # the same operations on the same numbers: equal to round-off of the batched products
+        tol = 50 * torch.finfo(dtype).eps
+        assert torch.allclose(single.transform, batch.transform[b], atol=tol, rtol=0)
+        assert int(single.iterations) == int(batch.iterations[b])
+        assert int(single.status) == int(batch.status[b])
+        assert float(single.fitness) == float(batch.fitness[b])
+
+
 def test_large_rotation_needs_multistart(generator):
     points, _ = surface(2500, generator, scale=(1.0, 0.7, 0.5))
     T_true = se3.exp(torch.tensor([2.2, -1.0, 1.3, 0.5, 0.3, -0.4], dtype=F64))  # ≈ 154°
