@@ -391,10 +391,17 @@ class Odometry:
         )
 
     def _icp(
-        self, source: Tensor, initial: Tensor, gate: float, iterations: int | None = None
+        self,
+        source: Tensor,
+        initial: Tensor,
+        gate: float,
+        iterations: int | None = None,
+        matcher: _Matcher | None = None,
     ) -> _icp.ICPResult:
         """Point-to-plane ICP of ``source`` against the map from ``initial`` (4, 4) or a
-        batch (S, 4, 4); a result per start."""
+        batch (S, 4, 4); a result per start. ``matcher``: the lookups of an earlier run of
+        the same points (one start), which go on serving this one (the answers of a fresh
+        query wherever the points are, :class:`~torchslam.registration.neighbors._Matcher`)."""
         cfg = self.config
         config = _icp.ICPConfig(
             method="point_to_plane",
@@ -409,7 +416,8 @@ class Odometry:
         )
         target, normals = self.map.state()
         batch = initial if initial.dim() == 3 else initial[None]
-        matcher = _Matcher(self.map.tree, target.numpy(), batch.shape[0], source.shape[0])
+        if matcher is None:
+            matcher = _Matcher(self.map.tree, target.numpy(), batch.shape[0], source.shape[0])
         result = _icp._run(
             "Odometry.add", source, target, batch, config, normals, self.map.tree, matcher
         )
@@ -475,8 +483,9 @@ class Odometry:
         fine = JUDGE_VOXELS * self.config.voxel
         if gate > 1.5 * fine:
             # A wide gate (fast or unknown motion) lets wrong matches bias the optimum: finish
-            # with the gate the alignment is judged with.
-            result = self._icp(source, result.transform, fine)
+            # with the gate the alignment is judged with, from the lookups of the run before.
+            assert self._lookups is not None
+            result = self._icp(source, result.transform, fine, matcher=self._lookups[1])
             iterations += int(result.iterations)
         transform, start = result.transform, 0
         if self.config.start_rotation_deg > 0:
