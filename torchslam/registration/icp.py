@@ -347,9 +347,6 @@ def _prepare(
     return source, target, initial, config, normals
 
 
-_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
-
-
 def _move(T: Tensor, points: Tensor) -> Tensor:
     """R p + t for every pose and point: T (B, 4, 4), points (N, 3) → (B, N, 3)."""
     return points @ T[:, :3, :3].transpose(-1, -2) + T[:, None, :3, 3]
@@ -529,22 +526,19 @@ def _icp_loop(
     status = np.full(batch, running, dtype=np.int64)
     iterations = np.zeros(batch, dtype=np.int64)
     # in the source's dtype, so that the relative test below rounds as the RMS does
-    previous_rms = np.full(batch, np.inf, dtype=_NUMPY_DTYPES[source.dtype])
+    previous_rms = source.new_full((batch,), math.inf).cpu().numpy()
     rms_all = source.new_zeros(batch)
     count_all = torch.zeros(batch, dtype=torch.int64, device=source.device)
     history: list[Tensor] = []
     zero = source.new_zeros(())
     rows = np.arange(batch)  # the runs still going, increasing
+    picked = torch.arange(batch, device=source.device)  # rows, as an index of the tensors
     centroid = source.mean(0)  # the step tolerances' lever
 
     while True:
         # Correspondences of the runs still going (rows), at their current transforms.
         whole = len(rows) == batch
-        if whole:
-            T_rows, gate_rows = T, gate
-        else:
-            picked = torch.from_numpy(rows).to(source.device)
-            T_rows, gate_rows = T[picked], gate[picked]
+        T_rows, gate_rows = (T, gate) if whole else (T[picked], gate[picked])
         moved = _move(T_rows, source)
         distance, index = matcher(rows, moved, gate_rows.cpu().numpy(), fn, "source")
         mask = _inlier_mask(distance, gate_rows, config.trim_fraction)
@@ -581,6 +575,7 @@ def _icp_loop(
         if not go.all():
             kept = torch.from_numpy(np.flatnonzero(go)).to(source.device)
             rows, rms_host, whole = rows[go], rms_host[go], False
+            picked = picked[kept]
             T_rows, gate_rows = T_rows[kept], gate_rows[kept]
             moved, distance, index = moved[kept], distance[kept], index[kept]
             mask, rms = mask[kept], rms[kept]
@@ -609,7 +604,7 @@ def _icp_loop(
         if whole:
             T = T_new  # a fresh tensor; T_rows keeps the transforms before the update
         else:
-            T[torch.from_numpy(rows).to(source.device)] = T_new
+            T[picked] = T_new
         iterations[rows] += 1
         previous_rms[rows] = rms_host
         if config.gate_scale is not None:
@@ -618,7 +613,7 @@ def _icp_loop(
             if whole:
                 gate = gate_new
             else:
-                gate[torch.from_numpy(rows).to(source.device)] = gate_new
+                gate[picked] = gate_new
         if config.rotation_tolerance_deg is not None:
             # The increment: the point-to-plane step, or T_new T⁻¹ of the absolute solve.
             delta = step if step is not None else T_new @ se3.inverse(T_rows)
@@ -626,6 +621,7 @@ def _icp_loop(
             if small.any():
                 status[rows[small]] = converged
                 rows = rows[~small]
+                picked = torch.from_numpy(rows).to(source.device)
                 if len(rows) == 0:
                     break
 
