@@ -30,7 +30,7 @@ Usage::
     .venv/bin/python experiments/slam_sequences.py [--sequences rgbd-7scenes,...|FOLDER]
         [--threads 1,2] [--variants full,rev,every2,...|robustness]
         [--peers-python ../peers-venv/bin/python]
-        [--no-peers] [--refine N] [--out out/slam_sequences]
+        [--no-peers] [--refine N] [--option NAME=VALUE ...] [--out out/slam_sequences]
         [--depth-scale 5000 --intrinsics K.txt --reference groundtruth.txt]
 
 A sequence of one's own (a folder) is read as ``torchslam slam`` reads it; its reference
@@ -142,17 +142,16 @@ def _reader(folder: Path, variant: str):
 
 
 def run_torchslam(
-    folder: Path, threads: int, refine: int | None = None, variant: str = "full"
+    folder: Path, threads: int, overrides: dict | None = None, variant: str = "full"
 ) -> tuple[dict, int, str]:
-    """One run with the sensor's defaults (``refine``: the refinement rounds instead) on a
+    """One run with the sensor's defaults (``overrides``: SLAMConfig options instead) on a
     variant of the sequence (:func:`variant_indices`)."""
     from torchslam.slam import SLAM, SLAMConfig, frame_reader
 
     torch.set_num_threads(threads)
     read, count, times, sensor, indices, total = _reader(folder, variant)
     times_all = frame_reader(folder, **READ_OPTIONS)[2]
-    overrides = {} if refine is None else {"refine_rounds": refine}
-    slam = SLAM(SLAMConfig.for_sensor(sensor, **overrides))
+    slam = SLAM(SLAMConfig.for_sensor(sensor, **(overrides or {})))
     per_frame, rss = [], []
     start = time.perf_counter()
     for i in range(count):
@@ -288,6 +287,14 @@ def main(argv: list[str] | None = None) -> int:
         "LiDAR 1, depth 0)",
     )
     parser.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="also run torchslam with this SLAMConfig option (repeatable, all in one extra run; "
+        "e.g. coarse_rotation_only=True)",
+    )
+    parser.add_argument(
         "--variants",
         default="full",
         help="comma-separated: full, rev, everyN, everyN+K, rev-everyN+K (frames of each "
@@ -314,6 +321,7 @@ def main(argv: list[str] | None = None) -> int:
         READ_OPTIONS["intrinsics"] = args.intrinsics
     args.out.mkdir(parents=True, exist_ok=True)
     threads = [int(t) for t in args.threads.split(",")]
+    options = dict(_option(text) for text in args.option)
     peers = not args.no_peers and Path(args.peers_python).exists()
     if not peers and not args.no_peers:
         print(f"peers skipped: no {args.peers_python} (bash ../shared/tools/install-peers.sh)")
@@ -342,12 +350,18 @@ def main(argv: list[str] | None = None) -> int:
                 f"{record['loops_accepted'] + record['loops_rejected']}",
                 "max_rss_mb": max(record["rss_mb"]),
             })  # fmt: skip
+            extra = dict(options)
             if args.refine is not None:
-                refined, _, _ = run_torchslam(folder, t, args.refine, variant)
+                extra["refine_rounds"] = args.refine
+            if extra:
+                refined, _, _ = run_torchslam(folder, t, extra, variant)
                 refined.pop("slam")
+                label = ", ".join(f"{k}={v}" for k, v in extra.items())
                 rows.append({
-                    "sequence": name, "method": f"torchslam SLAM, refine {args.refine}",
-                    "threads": t, **_errors(refined["poses"], reference),
+                    "sequence": name, "method": f"torchslam SLAM, {label}",
+                    "threads": t,
+                    "odometry_ate": _errors(refined["odometry_poses"], reference)["ate"],
+                    **_errors(refined["poses"], reference),
                     "ms_per_frame": refined["ms_per_frame"], "reading": True,
                     "loops": f"{refined['loops_accepted']} of "
                     f"{refined['loops_accepted'] + refined['loops_rejected']}",
@@ -416,6 +430,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _option(text: str) -> tuple[str, object]:
+    """NAME=VALUE of --option: the value as a Python literal (True, 0.5, 'z'), else a string."""
+    import ast
+
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise SystemExit(f"--option: expected NAME=VALUE, got {text!r}")
+    try:
+        return name, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return name, value
+
+
 def _print(rows: list[dict]) -> None:
     for r in rows:
         if "error" in r:
@@ -447,6 +474,13 @@ def _print_ratios(rows: list[dict], threads: int) -> None:
             f"{name:<34} {odo:8.3f} / {final:8.3f}   {peers[best]:8.3f} ({best})   "
             f"{final / peers[best]:.2f}"
         )
+        for r in here:
+            if r["method"].startswith("torchslam SLAM, ") and "ate" in r:
+                print(
+                    f"{'  ' + r['method'][len('torchslam SLAM, ') :]:<34} "
+                    f"{r['odometry_ate']:8.3f} / {r['ate']:8.3f}   "
+                    f"{'':>{len(best) + 12}}   {r['ate'] / peers[best]:.2f}"
+                )
 
 
 def _plot(series: dict, path: Path) -> None:

@@ -273,6 +273,41 @@ def test_results_are_normal_tensors_and_keep_the_autograd_graph(generator, true_
     assert torch.equal(inside.transform, plain.transform)
 
 
+def test_rotation_only_turns_about_the_source_origin(generator, true_transform):
+    # A stage that may only turn the source about its own origin (the sensor): from the true
+    # translation and a rotation 3° off it recovers the rotation, and from a wrong translation
+    # it keeps that translation (to round-off of the composed increments: ~1e-15 · |t|).
+    # The whole surface both ways (exact correspondences, no partial overlap to bias it).
+    source, _ = surface(1500, generator)
+    target = se3.act(true_transform, source)
+    normals = icp.estimate_normals(target, 10)
+    config = ICPConfig(
+        method="point_to_plane", max_distance=0.5, gate_scale=None, max_iterations=30,
+        rotation_only=True,
+    )  # fmt: skip
+    turned = true_transform.clone()
+    turned[:3, :3] = true_transform[:3, :3] @ so3.exp(torch.tensor([0.0, 0.03, 0.04], dtype=F64))
+    result = icp.icp(source, target, turned, config, normals)
+    assert bool(result.converged)
+    # exact copies: the rotation is found to round-off (Gauss-Newton converges quadratically;
+    # 1e-9° leaves orders of magnitude for other machines' kernels)
+    assert rotation_error_deg(result.transform, true_transform) < 1e-9
+    shifted = turned.clone()
+    shifted[:3, 3] += torch.tensor([0.05, -0.02, 0.03], dtype=F64)
+    moved = icp.icp(source, target, shifted, config, normals).transform
+    scale = float(shifted[:3, 3].abs().max())
+    assert torch.allclose(moved[:3, 3], shifted[:3, 3], atol=1e-13 * scale, rtol=0)
+    assert rotation_error_deg(moved, shifted) > 0.1  # it did turn
+    # batched rows are their own runs here too
+    batch = icp.icp_batch(source, target, torch.stack((turned, shifted)), config, normals)
+    assert torch.allclose(batch.transform[0], result.transform, atol=1e-12, rtol=0)
+    assert torch.allclose(batch.transform[1], moved, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="ICPConfig: argument 'rotation_only' needs method"):
+        ICPConfig(rotation_only=True)
+    with pytest.raises(TypeError, match="ICPConfig: argument 'rotation_only' must be a bool"):
+        ICPConfig(method="point_to_plane", rotation_only=1)
+
+
 def test_large_rotation_needs_multistart(generator):
     points, _ = surface(2500, generator, scale=(1.0, 0.7, 0.5))
     T_true = se3.exp(torch.tensor([2.2, -1.0, 1.3, 0.5, 0.3, -0.4], dtype=F64))  # ≈ 154°

@@ -393,6 +393,19 @@ def test_screening_options_are_checked():
     assert all(f.start == 0 for f in result.frames)
 
 
+def test_rotation_only_wide_stage_tracks_the_known_motion(sequence):
+    # The option's wide stage keeps the predicted translation; the tight stage after it
+    # solves all six, so the odometry meets the same bound as the default one (first test).
+    config = SLAMConfig.for_sensor("lidar", coarse_rotation_only=True, refine_rounds=0)
+    odometry = Odometry(config)
+    for cloud in sequence.clouds[:20]:
+        odometry.add(cloud)
+    assert all(f.trusted for f in odometry.frames)
+    assert _ate(odometry.poses, sequence.poses[:20]) < 0.05
+    with pytest.raises(TypeError, match="SLAMConfig: argument 'coarse_rotation_only' must be"):
+        SLAMConfig(coarse_rotation_only="yes")
+
+
 def test_judging_from_the_icp_lookups_equals_a_fresh_query():
     """Odometry judges an alignment from the last ICP run's lookups (neighbors._Matcher):
     its certified answers are those of a fresh KD-tree query, so every measure equals

@@ -114,6 +114,10 @@ class ICPConfig:
     kernel: Literal["none", "huber", "cauchy", "tukey"] = "none"
     # its scale, in the clouds' units; None: the inlier RMS of the iteration (scale-free)
     kernel_scale: float | None = None
+    # point_to_plane only: turn the source about its own origin (the sensor, placed by T)
+    # and keep T's translation: a coarse stage that a wide gate cannot make slide along the
+    # target's weakly constrained directions (odometry's wide stage, rotation mispredicted)
+    rotation_only: bool = False
 
     def __post_init__(self) -> None:
         fn = "ICPConfig"
@@ -155,6 +159,16 @@ class ICPConfig:
             )
         if self.kernel_scale is not None:
             _checks.check_real(fn, "kernel_scale", self.kernel_scale, low=0.0, low_open=True)
+        if not isinstance(self.rotation_only, bool):
+            raise TypeError(
+                f"{fn}: argument 'rotation_only' must be a bool, got "
+                f"{_checks.describe(self.rotation_only)}"
+            )
+        if self.rotation_only and self.method != "point_to_plane":
+            raise ValueError(
+                f"{fn}: argument 'rotation_only' needs method='point_to_plane', got "
+                f"method={self.method!r}"
+            )
 
 
 _KERNELS = ("none", "huber", "cauchy", "tukey")
@@ -375,6 +389,7 @@ def _point_to_plane_step(
     mask: Tensor,
     weights: Tensor | None = None,
     residual: Tensor | None = None,
+    pivot: Tensor | None = None,
 ) -> Tensor:
     """Increment ΔT minimizing Σ (n · (ΔT p − q))² to first order over the kept pairs, (B, 4, 4).
 
@@ -382,26 +397,35 @@ def _point_to_plane_step(
     p' ≈ p + ω × (p − c) + v, r = n·(p − q) + ((p − c) × n)·ω + n·v, so J = [(p − c) × n, n]
     and δ solves the Gauss–Newton normal equations JᵀJ δ = −Jᵀ r. ``residual``: the
     distances n·(p − q), (B, N), when the caller has them (:func:`_plane_distances`).
+    ``pivot`` (B, 3): turn about this point only (v = 0, J = [(p − pivot) × n]).
     """
     w = mask.to(moved.dtype)  # (B, N)
-    count = w.sum(-1, keepdim=True).clamp_min(1.0)  # (B, 1)
-    centroid = (w[:, None, :] @ moved).squeeze(-2) / count  # (B, 3)
+    if pivot is None:
+        count = w.sum(-1, keepdim=True).clamp_min(1.0)  # (B, 1)
+        centroid = (w[:, None, :] @ moved).squeeze(-2) / count  # (B, 3)
+    else:
+        centroid = pivot
     if weights is not None:
         w = torch.where(mask, weights, torch.zeros_like(weights))
     arm = moved - centroid[:, None]
     if residual is None:
         residual = _plane_distances(moved, matched, normals)
-    # [J | r], (B, N, 7): one product gives both JᵀWJ and JᵀWr.
-    augmented = torch.cat((torch.linalg.cross(arm, normals), normals, residual[..., None]), -1)
+    # [J | r], (B, N, 7) (rotation only: (B, N, 4)): one product gives JᵀWJ and JᵀWr.
+    cross = torch.linalg.cross(arm, normals)
+    columns = (cross, normals) if pivot is None else (cross,)
+    augmented = torch.cat((*columns, residual[..., None]), -1)
     products = (augmented * w[..., None]).transpose(-1, -2) @ augmented  # (B, 7, 7)
-    H, g = products[:, :6, :6], products[:, :6, 6:]
+    d = augmented.shape[-1] - 1
+    H, g = products[:, :d, :d], products[:, :d, d:]
     # A tiny ridge keeps H invertible for degenerate overlaps (a plane leaves 3 directions
     # free; there g vanishes and they stay put). Rows without data get H = I, g = 0.
-    eye = _series.constant("icp eye 6", torch.eye(6).tolist, H.dtype, H.device)
+    eye = _series.constant(f"icp eye {d}", torch.eye(d).tolist, H.dtype, H.device)
     scale = H.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
     empty = scale <= 0
     H = torch.where(empty, eye, H + 1e-12 * scale * eye)
     delta = -torch.linalg.solve(H, torch.where(empty, torch.zeros_like(g), g)).squeeze(-1)
+    if pivot is not None:
+        delta = torch.cat((delta, torch.zeros_like(delta)), -1)  # (ω, v = 0)
     # The θ-power form is the robust one bit for bit within these bounds (se3's docstring) and
     # skips its branches; a Gauss-Newton increment leaves them only on degenerate data.
     fast = float(delta.abs().max()) <= 2.0**20 if delta.numel() else True
@@ -606,7 +630,8 @@ def _icp_loop(
             plane = _plane_distances(moved, matched, normals)
             if config.kernel != "none":
                 weights = _kernel_weights(config.kernel, plane, _scale(config, rms))
-            step = _point_to_plane_step(moved, matched, normals, mask, weights, plane)
+            pivot = T_rows[:, :3, 3] if config.rotation_only else None
+            step = _point_to_plane_step(moved, matched, normals, mask, weights, plane, pivot)
             T_new = step @ T_rows
         if whole:
             T = T_new  # a fresh tensor; T_rows keeps the transforms before the update

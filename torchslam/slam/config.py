@@ -64,6 +64,11 @@ class SLAMConfig:
     # settle in a wrong basin.
     start_rotation_deg: float = 5.0
     start_axes: str = "z"
+    # the wide-gate stage of the odometry's ICP (the gate above 1.5× the judging gate) turns
+    # the frame about the sensor and keeps the predicted translation (ICPConfig
+    # rotation_only); the tight stage after it solves all six. Off by default: on the shared
+    # LiDAR runs it is a trade, not a gain (docs/sequences.md, "Limits")
+    coarse_rotation_only: bool = False
     # the screening: ICP of every start on screen_points of the frame, screen_iterations each
     screen_points: int = 500
     screen_iterations: int = 6
@@ -208,10 +213,12 @@ class SLAMConfig:
             ("refine_iterations", 1),
         ):
             _checks.check_int(fn, name, getattr(self, name), minimum=low)
-        if not isinstance(self.loops, bool):
-            raise TypeError(
-                f"{fn}: argument 'loops' must be a bool, got {_checks.describe(self.loops)}"
-            )
+        for name in ("loops", "coarse_rotation_only"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(
+                    f"{fn}: argument '{name}' must be a bool, got "
+                    f"{_checks.describe(getattr(self, name))}"
+                )
 
     @classmethod
     def for_sensor(cls, sensor: str, **overrides: object) -> SLAMConfig:

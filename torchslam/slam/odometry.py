@@ -10,7 +10,9 @@ For each frame (points in the sensor frame):
    keyframes' clouds and normals near the sensor), from T̂_k, with a correspondence gate that
    follows the observed motion: 3σ of the past prediction errors, each measured as the
    RMS displacement of the frame's points between the prediction and the estimate (the
-   adaptive threshold of KISS-ICP, measured on the points instead of at a lever arm);
+   adaptive threshold of KISS-ICP, measured on the points instead of at a lever arm); a
+   gate wider than 1.5× the judging gate is followed by a run at the judging gate (with
+   ``coarse_rotation_only``, the wide run only turns the frame about the sensor);
 4. alternative starts (``start_rotation_deg`` > 0): the prediction, the last pose (zero
    velocity) and the prediction turned by ±``start_rotation_deg`` about each sensor axis
    of ``start_axes``
@@ -397,6 +399,7 @@ class Odometry:
         gate: float,
         iterations: int | None = None,
         matcher: _Matcher | None = None,
+        rotation_only: bool = False,
     ) -> _icp.ICPResult:
         """Point-to-plane ICP of ``source`` against the map from ``initial`` (4, 4) or a
         batch (S, 4, 4); a result per start. ``matcher``: the lookups of an earlier run of
@@ -413,6 +416,7 @@ class Odometry:
             kernel_scale=gate * cfg.kernel_fraction,
             rotation_tolerance_deg=cfg.icp_step_deg,
             translation_tolerance=cfg.icp_step_voxels * cfg.voxel,
+            rotation_only=rotation_only,
         )
         target, normals = self.map.state()
         batch = initial if initial.dim() == 3 else initial[None]
@@ -478,10 +482,12 @@ class Odometry:
     def _register(
         self, source: Tensor, prediction: Tensor, gate: float
     ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus, int]:
-        result = self._icp(source, prediction, gate)
-        iterations = int(result.iterations)
         fine = JUDGE_VOXELS * self.config.voxel
-        if gate > 1.5 * fine:
+        two_stage = gate > 1.5 * fine
+        turn = two_stage and self.config.coarse_rotation_only
+        result = self._icp(source, prediction, gate, rotation_only=turn)
+        iterations = int(result.iterations)
+        if two_stage:
             # A wide gate (fast or unknown motion) lets wrong matches bias the optimum: finish
             # with the gate the alignment is judged with, from the lookups of the run before.
             assert self._lookups is not None
