@@ -518,6 +518,13 @@ def _got(value: object) -> str:
     return describe(value)
 
 
+def check_bool(fn: str, name: str, value: object) -> bool:
+    """TypeError ``{fn}: argument '{name}' must be a bool, got …`` unless ``value`` is one."""
+    if not isinstance(value, bool):
+        raise TypeError(f"{fn}: argument '{name}' must be a bool, got {describe(value)}")
+    return value
+
+
 def check_int(
     fn: str,
     name: str,

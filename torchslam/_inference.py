@@ -22,7 +22,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor
 
-__all__ = ["cacheable", "outside", "plain"]
+__all__ = ["cacheable", "outside", "plain", "tracked"]
 
 
 @contextlib.contextmanager
@@ -35,6 +35,12 @@ def outside() -> Iterator[None]:
     grad = torch.is_grad_enabled()
     with torch.inference_mode(False), torch.set_grad_enabled(grad):
         yield
+
+
+def tracked(*tensors: Tensor | None) -> bool:
+    """Whether autograd would record an operation on ``tensors`` (None entries skipped): grad
+    mode is on and one of them requires a gradient."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
 def cacheable(t: Tensor) -> bool:

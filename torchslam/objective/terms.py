@@ -1268,9 +1268,7 @@ def term_whitening(term: Term) -> Tensor | None:
     tensors are unchanged (same objects, no in-place edit) and need no gradient: a solve
     linearizes the same term every iteration."""
     tensors = (term.weight, term.information, term.valid)
-    differentiable = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in tensors
-    )
+    differentiable = _inference.tracked(*tensors)
     if not all(t is None or _inference.cacheable(t) for t in tensors):
         return whitening(*masked_weighting(term))
     versions = tuple(t._version if t is not None else None for t in tensors)

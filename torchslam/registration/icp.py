@@ -159,11 +159,7 @@ class ICPConfig:
             )
         if self.kernel_scale is not None:
             _checks.check_real(fn, "kernel_scale", self.kernel_scale, low=0.0, low_open=True)
-        if not isinstance(self.rotation_only, bool):
-            raise TypeError(
-                f"{fn}: argument 'rotation_only' must be a bool, got "
-                f"{_checks.describe(self.rotation_only)}"
-            )
+        _checks.check_bool(fn, "rotation_only", self.rotation_only)
         if self.rotation_only and self.method != "point_to_plane":
             raise ValueError(
                 f"{fn}: argument 'rotation_only' needs method='point_to_plane', got "
@@ -500,9 +496,7 @@ def _run(
     # No input asks for a gradient: the loop runs in inference mode (bit-identical results,
     # ~8 % less time a pass: no autograd bookkeeping on its ~hundreds of small operations a
     # pass), and its tensors leave as normal ones (torchslam._inference.plain).
-    tracked = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in (source, target, initial, target_normals)
-    )
+    tracked = _inference.tracked(source, target, initial, target_normals)
     with _checks.validation(False), _host_threads(), torch.inference_mode(not tracked):
         result = _icp_loop(fn, source, target, initial, config, target_normals, tree, matcher)
     return _inference.plain(result)

@@ -804,10 +804,7 @@ def refine(
         raise TypeError(f"{fn}: argument 'progress' must be callable or None")
     if pairs is not None:
         pairs = _checks.check_index_pairs(fn, pairs, len(clouds))
-    if not isinstance(covariances, bool):
-        raise TypeError(
-            f"{fn}: argument 'covariances' must be a bool, got {_checks.describe(covariances)}"
-        )
+    _checks.check_bool(fn, "covariances", covariances)
     poses = relative_to_first(poses.detach().clone().to(clouds[0].dtype), 0)
     if pairs is None:
         pairs, _ = overlapping_pairs(clouds, poses, config.voxel, config.min_overlap)

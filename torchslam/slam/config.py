@@ -216,11 +216,7 @@ class SLAMConfig:
         ):
             _checks.check_int(fn, name, getattr(self, name), minimum=low)
         for name in ("loops", "coarse_rotation_only"):
-            if not isinstance(getattr(self, name), bool):
-                raise TypeError(
-                    f"{fn}: argument '{name}' must be a bool, got "
-                    f"{_checks.describe(getattr(self, name))}"
-                )
+            _checks.check_bool(fn, name, getattr(self, name))
 
     @classmethod
     def for_sensor(cls, sensor: str, **overrides: object) -> SLAMConfig:

@@ -105,7 +105,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchslam import _checks, losses
+from torchslam import _checks, _inference, losses
 from torchslam._threads import threads_for
 from torchslam.lie import se3
 from torchslam.manifold import SE3Matrix
@@ -701,7 +701,7 @@ def _solve_implicit(
     data_spec = _DataSpec.of(data)
     theta = data_spec.tensors()
     start_values = (pose_tangent, points) + (() if slots is None else (slots,))
-    if not torch.is_grad_enabled() or not any(t.requires_grad for t in (*start_values, *theta)):
+    if not _inference.tracked(*start_values, *theta):
         return result
     unconverged = [b for b, ok in enumerate(result.converged) if not ok]
     if unconverged and on_unconverged == "raise":
