@@ -169,10 +169,89 @@ def test_forced_wrong_closure_does_not_bend_the_map(sequence, result):
     forced = slam.add_loop(2, 19, measurement=torch.eye(4, dtype=torch.float64))
     assert forced.forced and forced.accepted
     bent = slam.finish()
-    assert not forced.kept and forced.reason == "forced, dropped by χ²"
+    assert not forced.kept and forced.reason == "forced, dropped by χ² against the odometry"
     # the χ² test drops it: the trajectory is the one without it, to the solver's tolerance
     reference = _ate(result.poses, sequence.poses)
     assert abs(_ate(bent.poses, sequence.poses) - reference) <= 0.03 * reference + 1e-4
+
+
+def test_lone_wrong_closure_is_dropped_against_the_odometry(sequence):
+    # No detected loop to contradict it (loops off): only the test against the odometry chain
+    # can catch a lone wrong closure; the graph alone would bend the chain to fit it, leaving
+    # the loop edge's own χ² small.
+    config = SLAMConfig.for_sensor("lidar", loops=False)
+    plain = run_sequence(sequence.clouds, config)
+    slam = SLAM(config)
+    for cloud in sequence.clouds:
+        slam.add(cloud)
+    forced = slam.add_loop(2, 19, measurement=torch.eye(4, dtype=torch.float64))
+    bent = slam.finish()
+    assert forced.contradicts_odometry and not forced.kept
+    assert forced.reason == "forced, dropped by χ² against the odometry"
+    assert forced.odometry_chi2 > config.loop_max_chi2 and forced.chi2 == forced.odometry_chi2
+    assert bent.accepted_loops == [] and bent.backend.graph_status is None
+    # dropped before the graph: the back end is the one without it, bit for bit
+    assert torch.equal(bent.poses, plain.poses)
+
+
+def test_true_closure_passes_the_odometry_test(sequence):
+    # The same pair with its true relative pose: its innovation is the odometry's own drift
+    # over 17 keyframes (millimetres, see test_odometry_follows_the_known_motion), whose χ²
+    # under the scaled information is a few units at most, far below the bound.
+    config = SLAMConfig.for_sensor("lidar", loops=False)
+    slam = SLAM(config)
+    for cloud in sequence.clouds:
+        slam.add(cloud)
+    truth = sequence.poses[[kf.frame for kf in slam.keyframes]]
+    closure = slam.add_loop(2, 19, measurement=se3.compose(se3.inverse(truth[2]), truth[19]))
+    result = slam.finish()
+    assert closure.kept and not closure.contradicts_odometry and closure.reason == "forced"
+    assert closure.odometry_chi2 < 0.1 * config.loop_max_chi2
+    assert result.accepted_loops == [closure]
+
+
+def test_odometry_chi2_is_the_cost_of_the_chain_and_the_loop():
+    # The closed form νᵀ(Σ_chain + Σ_loop)⁻¹ν against the graph of the chain and that loop
+    # solved by the library's solver (2× its least-squares cost): equal to first order in the
+    # innovation ν, so their gap shrinks with |ν|. A chain of 8 random steps of ~17° and ~20 m
+    # (the adjoints' lever arms), random SPD information.
+    from torchslam import _checks
+    from torchslam.registration.quality import AlignmentQuality
+    from torchslam.slam import backend
+    from torchslam.slam.loops import LoopClosure
+    from torchslam.slam.odometry import Keyframe
+
+    g = torch.Generator().manual_seed(3)
+    f64 = torch.float64
+
+    def spd():
+        A = torch.randn(6, 6, generator=g, dtype=f64)
+        return 1e3 * (A @ A.T + 0.5 * torch.eye(6, dtype=f64))
+
+    K = 9
+    xi = torch.cat([0.3 * torch.randn(K - 1, 3, generator=g, dtype=f64),
+                    20 * torch.randn(K - 1, 3, generator=g, dtype=f64)], -1)  # fmt: skip
+    poses = [torch.eye(4, dtype=f64)]
+    for step in se3.exp(xi):
+        poses.append(poses[-1] @ step)
+    poses = torch.stack(poses)
+    empty = torch.zeros(0, 3, dtype=f64)
+    keyframes = [Keyframe(k, poses[k], empty, empty, spd()) for k in range(K)]
+    config = SLAMConfig.for_sensor("lidar")
+    direction = torch.randn(6, generator=g, dtype=f64)
+    direction /= direction.norm()
+    information = spd()
+    gaps = []
+    for size in (1e-2, 1e-3):
+        Z = se3.compose(se3.compose(se3.inverse(poses[1]), poses[7]), se3.exp(size * direction))
+        quality = AlignmentQuality(math.nan, math.nan, math.nan, 0, information, None)
+        closure = LoopClosure(1, 7, Z, information, quality, True)
+        with _checks.validation(False):
+            closed = float(backend._odometry_chi2(poses, keyframes, [closure])[0])
+            graph = backend._solve_graph(poses, keyframes, [closure], config, robust=False)[1]
+        exact = 2 * float(graph.final_cost[0])
+        gaps.append(abs(closed - exact) / exact)
+    assert gaps[1] < 1e-4 and gaps[1] < 0.2 * gaps[0]
 
 
 def test_untrusted_frame_is_marked_and_not_a_keyframe(sequence):

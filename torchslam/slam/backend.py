@@ -4,10 +4,18 @@
    gauge). Edges: odometry between consecutive keyframes (Z = T_a⁻¹ T_b, the tracking
    alignment's information) and the accepted loop closures (:mod:`torchslam.slam.loops`),
    residual r = Log(Z⁻¹ T_a⁻¹ T_b), cost ½ Σ rᵀΩr (the :mod:`torchslam.posegraph` objective),
-   solved by Levenberg-Marquardt (the library's solver) in least squares from the odometry
-   poses; while a loop edge's χ² = rᵀΩr exceeds ``loop_max_chi2`` the worst one is dropped
-   and the graph solved again (a closure that contradicts the others cannot bend the map);
-   then the remaining loop edges get a Cauchy kernel ρ(s) = a² log(1 + s/a²),
+   solved by Levenberg-Marquardt (the library's solver). Two χ² tests with the bound
+   ``loop_max_chi2`` judge the loops first (:func:`_consistent_loops`):
+
+   - **against the odometry**: each loop alone, the Mahalanobis distance νᵀ(Σ_chain +
+     Σ_loop)⁻¹ν of its innovation ν = Log(Z⁻¹ T_a⁻¹ T_b) from the odometry chain's
+     prediction (:func:`_odometry_chi2`); a loop above the bound is dropped. Without it a
+     lone wrong closure would pass the second test, the chain bending to fit it;
+   - **against the other loops**: the graph in least squares from the odometry poses; while
+     a loop edge's χ² = rᵀΩr exceeds the bound the worst one is dropped and the graph solved
+     again (a closure that contradicts the others cannot bend the map).
+
+   Then the remaining loop edges get a Cauchy kernel ρ(s) = a² log(1 + s/a²),
    a = ``loop_kernel_scale``, for a last solve from there.
 2. **Joint refinement** (``refine_rounds`` > 0): the seed's multiview ICP-SLAM least squares
    over the keyframes, poses and points together
@@ -120,6 +128,32 @@ def _graph_data(
     )
 
 
+def _odometry_chi2(start: Tensor, keyframes: list[Keyframe], loops: list[LoopClosure]) -> Tensor:
+    """χ² of each loop against the odometry chain alone, (L,): the Mahalanobis distance
+    νᵀ(Σ_chain + Σ_loop)⁻¹ν of the innovation ν = Log(Z⁻¹ T_a⁻¹ T_b) (T the odometry poses).
+
+    With odometry edges T_{e−1}⁻¹T_e = Z_e Exp(n_e), n_e ~ N(0, Ω_e⁻¹), the chain's
+    T_a⁻¹T_b = Π_{e=a+1..b} Z_e Exp(n_e) = T_a⁻¹T_b · Exp(Σ_e Ad(T_b⁻¹T_e) n_e) to first order,
+    so Σ_chain = Σ_e Ad(T_b⁻¹T_e) Ω_e⁻¹ Ad(T_b⁻¹T_e)ᵀ; Σ_loop = Ω_loop⁻¹. To first order it is
+    2× the least-squares cost of the graph of the chain and that one loop (the chain alone
+    costs 0)."""
+    odometry = _information(torch.stack([kf.information for kf in keyframes[1:]]))
+    eye = torch.eye(6, dtype=start.dtype)
+    sigma = torch.linalg.solve(odometry, eye.expand_as(odometry))  # edge e at e − 1
+    values = []
+    for c in loops:
+        a, b = c.first, c.second
+        A = se3.adjoint(
+            se3.compose(se3.inverse(start[b]).expand(b - a, 4, 4), start[a + 1 : b + 1])
+        )
+        S = (A @ sigma[a:b] @ A.mT).sum(0) + torch.linalg.solve(_information(c.information), eye)
+        nu = se3.log(
+            se3.compose(se3.inverse(c.measurement), se3.compose(se3.inverse(start[a]), start[b]))
+        )
+        values.append(nu @ torch.linalg.solve(0.5 * (S + S.T), nu))
+    return torch.stack(values)
+
+
 def _loop_chi2(poses: Tensor, loops: list[LoopClosure]) -> Tensor:
     i = torch.tensor([c.first for c in loops])
     k = torch.tensor([c.second for c in loops])
@@ -144,6 +178,40 @@ def _solve_graph(
     return poses, result
 
 
+def _consistent_loops(
+    start: Tensor, keyframes: list[Keyframe], loops: list[LoopClosure], config: SLAMConfig
+):
+    """The loops that pass both χ² tests (module docstring), and the least-squares graph
+    solved with them (poses (K, 4, 4) and the solver's result; None when none passes).
+
+    First each loop against the odometry chain alone: without this test a lone wrong
+    closure would pass the second, the chain bending to fit it. Then, in least squares (a
+    kernel would ignore a correct loop whose error the odometry has not yet absorbed), the
+    most inconsistent loop is dropped while any loop's χ² exceeds the bound."""
+    if len(keyframes) < 2 or not loops:
+        return [], start, None
+    kept = []
+    for c, value in zip(loops, _odometry_chi2(start, keyframes, loops).tolist(), strict=True):
+        c.odometry_chi2 = value
+        if value > config.loop_max_chi2:
+            c.chi2, c.contradicts_odometry = value, True
+        else:
+            kept.append(c)
+    if not kept:
+        return [], start, None
+    poses, result = _solve_graph(start, keyframes, kept, config, robust=False)
+    while kept:
+        chi2 = _loop_chi2(poses, kept)
+        worst = int(chi2.argmax())
+        if float(chi2[worst]) <= config.loop_max_chi2:
+            break
+        kept[worst].chi2 = float(chi2[worst])
+        del kept[worst]
+        if kept:
+            poses, result = _solve_graph(start, keyframes, kept, config, robust=False)
+    return kept, poses, result
+
+
 def optimize_keyframes(
     keyframes: list[Keyframe], loops: list[LoopClosure], config: SLAMConfig
 ) -> BackendResult:
@@ -155,28 +223,15 @@ def optimize_keyframes(
     accepted = [c for c in loops if c.accepted]
     K = len(keyframes)
     with _checks.validation(False):
-        if K > 1 and accepted:
-            # Least squares first (a kernel would ignore a correct loop whose error the
-            # odometry has not yet absorbed), dropping the most inconsistent loop while any
-            # χ² exceeds the bound; then the kernel on the loops that remain, from there.
-            kept = list(accepted)
-            poses, result = _solve_graph(start, keyframes, kept, config, robust=False)
-            while kept:
-                chi2 = _loop_chi2(poses, kept)
-                worst = int(chi2.argmax())
-                if float(chi2[worst]) <= config.loop_max_chi2:
-                    break
-                kept[worst].chi2 = float(chi2[worst])
-                del kept[worst]
-                poses, result = _solve_graph(start, keyframes, kept, config, robust=False)
-            if kept:
-                poses, result = _solve_graph(poses, keyframes, kept, config, robust=True)
-                for c, value in zip(kept, _loop_chi2(poses, kept).tolist(), strict=True):
-                    c.kept, c.chi2 = True, value
+        kept, poses, result = _consistent_loops(start, keyframes, accepted, config)
+        if kept:
+            poses, result = _solve_graph(poses, keyframes, kept, config, robust=True)
+            for c, value in zip(kept, _loop_chi2(poses, kept).tolist(), strict=True):
+                c.kept, c.chi2 = True, value
             initial, final = float(result.initial_cost[0]), float(result.final_cost[0])
             iterations = int(result.iterations[0])
             status = Status(int(result.status[0])).name
-        else:
+        else:  # the odometry chain is its own optimum
             poses, initial, final, iterations, status = start.clone(), 0.0, 0.0, 0, None
         poses = se3.from_rotation_translation(so3.project(poses[:, :3, :3]), poses[:, :3, 3])
     seconds["pose_graph"] = time.perf_counter() - tic

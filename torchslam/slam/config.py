@@ -122,8 +122,11 @@ class SLAMConfig:
     effective_points: float = 100.0
     # loop edges carry a Cauchy kernel of this scale (in whitened units, √χ²)
     loop_kernel_scale: float = 3.0
-    # after the robust solve, loop edges with χ² above this are dropped and the graph solved
-    # again
+    # a loop is dropped when its χ² against the odometry chain alone (the Mahalanobis
+    # distance of its innovation), or its edge's χ² in the least-squares graph with the other
+    # loops, exceeds this (torchslam.slam.backend). The information's effective_points
+    # scaling keeps correct loops far below it: on the shared LiDAR runs their χ² against the
+    # odometry is 0.01–1.4 (defaults), a forced identity between distant keyframes 10³–10⁴
     loop_max_chi2: float = 200.0
     # rounds of the joint multiview ICP-SLAM refinement of the keyframes (poses and points, the
     # seed's problem) after the pose graph. The LiDAR defaults run one: on hku2-loop's 253

@@ -21,7 +21,8 @@ world frame at their odometry poses, starting from k's odometry pose, with gates
 
 An accepted closure becomes a pose-graph edge j → k with measurement Z_jk = T_j⁻¹ T̂_k (T̂_k
 the verified pose) and the alignment's information (scaled like the odometry edges', see
-``effective_points``); in the graph it carries a Cauchy kernel and a χ² consistency check
+``effective_points``); in the graph it carries a Cauchy kernel and two χ² consistency
+checks, against the odometry chain and against the other loops
 (:mod:`torchslam.slam.backend`), so one wrong closure that passed cannot bend the map.
 """
 
@@ -61,14 +62,22 @@ class LoopClosure:
     chi2: float = float("nan")
     # added by hand with its measurement (SLAM.add_loop(..., measurement=...)), not verified
     forced: bool = False
+    # set by the back end: the χ² of this loop against the odometry chain alone (the
+    # Mahalanobis distance of the measurement from the chain's prediction), and whether it
+    # exceeded the bound (the loop was then dropped before the graph; chi2 holds it too)
+    odometry_chi2: float = float("nan")
+    contradicts_odometry: bool = False
 
     @property
     def reason(self) -> str:
-        if self.forced:
-            return "forced" if self.kept or self.chi2 != self.chi2 else "forced, dropped by χ²"
-        if self.accepted:
-            return "accepted" if self.kept or self.chi2 != self.chi2 else "dropped by χ² check"
-        return self.quality.problem or "rejected"
+        label = "forced" if self.forced else "accepted"
+        if not (self.forced or self.accepted):
+            return self.quality.problem or "rejected"
+        if self.contradicts_odometry:
+            return f"{label}, dropped by χ² against the odometry"
+        if self.kept or self.chi2 != self.chi2:
+            return label
+        return f"{label}, dropped by χ² against the other loops"
 
 
 def find_candidates(
