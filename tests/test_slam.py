@@ -472,10 +472,12 @@ def test_screening_options_are_checked():
     assert all(f.start == 0 for f in result.frames)
 
 
-def test_rotation_only_wide_stage_tracks_the_known_motion(sequence):
-    # The option's wide stage keeps the predicted translation; the tight stage after it
-    # solves all six, so the odometry meets the same bound as the default one (first test).
-    config = SLAMConfig.for_sensor("lidar", coarse_rotation_only=True, refine_rounds=0)
+def test_six_dof_wide_stage_tracks_the_known_motion(sequence):
+    # The default wide stage keeps the predicted translation (coarse_rotation_only); with it
+    # off that stage solves all six, and the odometry meets the same bound as the default
+    # one (first test).
+    assert SLAMConfig().coarse_rotation_only and SLAMConfig.for_sensor("depth").coarse_rotation_only
+    config = SLAMConfig.for_sensor("lidar", coarse_rotation_only=False, refine_rounds=0)
     odometry = Odometry(config)
     for cloud in sequence.clouds[:20]:
         odometry.add(cloud)

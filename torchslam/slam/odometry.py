@@ -28,7 +28,8 @@ For each frame (points in the sensor frame):
 5. the alignment is judged (:func:`torchslam.registration.quality.alignment_quality`:
    overlap and residual RMS of the correspondences within 3 voxels, conditioning). An
    untrusted one is retried with a 3× wider gate from the prediction and from the last pose
-   (zero velocity); when no attempt is trusted the frame
+   (zero velocity), each retry the two-stage registration of step 3 (its wide stage turning
+   the frame only, by default); when no attempt is trusted the frame
    is marked ``UNRELIABLE`` (its pose the best attempt's) and never becomes a keyframe;
 6. a frame becomes a keyframe when it moved more than ``keyframe_translation`` or turned
    more than ``keyframe_rotation_deg`` since the last keyframe; keyframes enter the local map
@@ -479,13 +480,14 @@ class Odometry:
             return transform, 0, passes
         return refined.transform, best + 1, passes
 
-    def _register(
-        self, source: Tensor, prediction: Tensor, gate: float
-    ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus, int]:
+    def _align(self, source: Tensor, initial: Tensor, gate: float) -> tuple[_icp.ICPResult, int]:
+        """ICP from ``initial`` (4, 4) at ``gate``; a gate wider than 1.5× the judging gate is
+        a two-stage run (module docstring, step 3): that gate (with ``coarse_rotation_only``
+        turning the frame only), then the judging gate. Returns the result and the passes."""
         fine = JUDGE_VOXELS * self.config.voxel
         two_stage = gate > 1.5 * fine
         turn = two_stage and self.config.coarse_rotation_only
-        result = self._icp(source, prediction, gate, rotation_only=turn)
+        result = self._icp(source, initial, gate, rotation_only=turn)
         iterations = int(result.iterations)
         if two_stage:
             # A wide gate (fast or unknown motion) lets wrong matches bias the optimum: finish
@@ -493,6 +495,12 @@ class Odometry:
             assert self._lookups is not None
             result = self._icp(source, result.transform, fine, matcher=self._lookups[1])
             iterations += int(result.iterations)
+        return result, iterations
+
+    def _register(
+        self, source: Tensor, prediction: Tensor, gate: float
+    ) -> tuple[Tensor, AlignmentQuality, int, FrameStatus, int]:
+        result, iterations = self._align(source, prediction, gate)
         transform, start = result.transform, 0
         if self.config.start_rotation_deg > 0:
             screened, start, passes = self._screen(source, prediction, transform)
@@ -506,13 +514,12 @@ class Odometry:
         if quality.trusted:
             return transform, quality, iterations, FrameStatus.TRACKED, start
         assert self._last is not None
-        attempts = [(transform, quality, int(result.iterations))]
-        wide = 3.0 * gate
+        attempts = [(transform, quality, iterations)]
         for initial in (prediction, self._last):
-            coarse = self._icp(source, initial, wide)
-            refined = self._icp(source, coarse.transform, gate)
+            # the same registration from a 3× wider gate: its wide stage (turning only, by
+            # default) cannot slide the frame, the judging-gate stage after it solves all six
+            refined, steps = self._align(source, initial, 3.0 * gate)
             q = self._judge(source, refined.transform)
-            steps = int(coarse.iterations) + int(refined.iterations)
             attempts.append((refined.transform, q, steps))
             if q.trusted:
                 return refined.transform, q, steps, FrameStatus.RETRIED, 0
