@@ -130,9 +130,10 @@ class SLAMConfig:
     loop_max_chi2: float = 200.0
     # rounds of the joint multiview ICP-SLAM refinement of the keyframes (poses and points, the
     # seed's problem) after the pose graph. The LiDAR defaults run one: on hku2-loop's 253
-    # keyframes it takes ~5 s (1 thread), 20 ms per frame on top of the odometry's ~75, and
-    # lowers the ATE from 0.082 to 0.078 m (quick-shack 0.165 → 0.157 m in ~2 s); the depth
-    # defaults none (7-Scenes: 0.63 → 0.65 cm, a third more time per frame).
+    # keyframes it takes ~5 s (1 thread), 20 ms per frame on top of the odometry's ~80; it
+    # lowers quick-shack's ATE from 0.158 to 0.107 m (~2 s) and leaves hku2-loop's at 0.073 m
+    # (a loop-closed graph already); the depth defaults none (7-Scenes: 0.63 → 0.65 cm, a
+    # third more time per frame, measured with the six-DoF wide stage).
     refine_rounds: int = 0
     # keyframe pairs matched by the refinement: neighbours up to this index gap, plus loops
     refine_neighbors: int = 2
