@@ -487,6 +487,41 @@ def test_six_dof_wide_stage_tracks_the_known_motion(sequence):
         SLAMConfig(coarse_rotation_only="yes")
 
 
+def test_retries_run_the_two_stage_registration(sequence, monkeypatch):
+    # An untrusted main alignment (forced here: the first judgement of frame 6 fails) is
+    # retried from the prediction with a 3x wider gate, as the main registration runs: the
+    # wide stage turning only, then all six at the judging gate. The retry is the same
+    # alignment of the same frame, so it meets the odometry bound of the first test.
+    from torchslam.slam import odometry as _odometry
+
+    odometry = Odometry(SLAMConfig.for_sensor("lidar", refine_rounds=0, loops=False))
+    for cloud in sequence.clouds[:6]:
+        odometry.add(cloud)
+    calls, judged = [], []
+    icp, judge = _odometry.Odometry._icp, _odometry.Odometry._judge
+
+    def recording_icp(self, source, initial, gate, iterations=None, matcher=None, **kw):
+        calls.append((gate, kw.get("rotation_only", False), initial.dim()))
+        return icp(self, source, initial, gate, iterations, matcher, **kw)
+
+    def failing_once(self, source, T):
+        quality = judge(self, source, T)
+        judged.append(quality)
+        return dataclasses.replace(quality, problem="forced") if len(judged) == 1 else quality
+
+    monkeypatch.setattr(_odometry.Odometry, "_icp", recording_icp)
+    monkeypatch.setattr(_odometry.Odometry, "_judge", failing_once)
+    odometry.add(sequence.clouds[6])
+    info = odometry.frames[-1]
+    assert info.status == FrameStatus.RETRIED and info.trusted
+    fine = _odometry.JUDGE_VOXELS * odometry.config.voxel
+    single = [c for c in calls if c[2] == 2]  # the screening's batched run aside
+    retry = single[-2:]
+    assert retry[0][0] > 1.5 * fine and retry[0][1]  # the 3x gate, turning only
+    assert retry[1] == (fine, False, 2)  # then all six at the judging gate
+    assert _ate(odometry.poses, sequence.poses[:7]) < 0.05
+
+
 def test_judging_from_the_icp_lookups_equals_a_fresh_query():
     """Odometry judges an alignment from the last ICP run's lookups (neighbors._Matcher):
     its certified answers are those of a fresh KD-tree query, so every measure equals
