@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="NAME=VALUE",
         help="also run torchslam with this SLAMConfig option (repeatable, all in one extra run; "
-        "e.g. coarse_rotation_only=True)",
+        "e.g. coarse_rotation_only=False)",
     )
     parser.add_argument(
         "--variants",
