@@ -42,7 +42,7 @@ from torchslam.objective.terms import RelativePoseTerm
 from torchslam.slam.config import SLAMConfig
 from torchslam.slam.loops import LoopClosure
 from torchslam.slam.odometry import Keyframe
-from torchslam.solver import SolverConfig, Status, solve_tensors
+from torchslam.solver import SolverConfig, SolveResult, Status, solve_tensors
 
 __all__ = ["BackendResult", "optimize_keyframes"]
 
@@ -140,26 +140,30 @@ def _odometry_chi2(start: Tensor, keyframes: list[Keyframe], loops: list[LoopClo
     odometry = _information(torch.stack([kf.information for kf in keyframes[1:]]))
     eye = torch.eye(6, dtype=start.dtype)
     sigma = torch.linalg.solve(odometry, eye.expand_as(odometry))  # edge e at e − 1
-    values = []
-    for c in loops:
+    nu, omega = _loop_residuals(start, loops)  # the innovations at the odometry poses
+    S = torch.linalg.solve(omega, eye.expand_as(omega))  # Σ_loop, then + Σ_chain
+    for row, c in enumerate(loops):
         a, b = c.first, c.second
         A = se3.adjoint(
             se3.compose(se3.inverse(start[b]).expand(b - a, 4, 4), start[a + 1 : b + 1])
         )
-        S = (A @ sigma[a:b] @ A.mT).sum(0) + torch.linalg.solve(_information(c.information), eye)
-        nu = se3.log(
-            se3.compose(se3.inverse(c.measurement), se3.compose(se3.inverse(start[a]), start[b]))
-        )
-        values.append(nu @ torch.linalg.solve(0.5 * (S + S.T), nu))
-    return torch.stack(values)
+        S[row] += (A @ sigma[a:b] @ A.mT).sum(0)
+    S = 0.5 * (S + S.mT)
+    return (nu[:, None, :] @ torch.linalg.solve(S, nu[:, :, None]))[:, 0, 0]
 
 
-def _loop_chi2(poses: Tensor, loops: list[LoopClosure]) -> Tensor:
+def _loop_residuals(poses: Tensor, loops: list[LoopClosure]) -> tuple[Tensor, Tensor]:
+    """The loop edges' residuals r = Log(Z⁻¹ T_a⁻¹ T_b) at ``poses`` (L, 6) and their
+    information (L, 6, 6)."""
     i = torch.tensor([c.first for c in loops])
     k = torch.tensor([c.second for c in loops])
     Z = torch.stack([c.measurement for c in loops])
     r = se3.log(se3.compose(se3.inverse(Z), se3.compose(se3.inverse(poses[i]), poses[k])))
-    omega = _information(torch.stack([c.information for c in loops]))
+    return r, _information(torch.stack([c.information for c in loops]))
+
+
+def _loop_chi2(poses: Tensor, loops: list[LoopClosure]) -> Tensor:
+    r, omega = _loop_residuals(poses, loops)
     return (r[:, None, :] @ omega @ r[:, :, None])[:, 0, 0]
 
 
@@ -180,7 +184,7 @@ def _solve_graph(
 
 def _consistent_loops(
     start: Tensor, keyframes: list[Keyframe], loops: list[LoopClosure], config: SLAMConfig
-):
+) -> tuple[list[LoopClosure], Tensor, SolveResult | None]:
     """The loops that pass both χ² tests (module docstring), and the least-squares graph
     solved with them (poses (K, 4, 4) and the solver's result; None when none passes).
 
