@@ -460,3 +460,79 @@ def test_kernel_weights_equal_the_losses_weight(generator, kernel):
     got = icp._kernel_weights(kernel, residual, scale)
     expected = kind(scale).weight(residual * residual)
     assert torch.equal(got, expected)
+
+
+def _wall_and_floor(generator: torch.Generator, noise: float) -> torch.Tensor:
+    """A wall (x = 1) over a floor (z = 0), 1.5 × 1 each, with a 1 mm ripple along y on the
+    wall: the translation along y (the line where they meet) is constrained ~10⁴× more weakly
+    than the others (a camera facing a bare wall), plus Gaussian noise of ``noise``."""
+    u = torch.rand(2, 1500, generator=generator, dtype=F64)
+    wall = torch.stack((1 + 0.001 * torch.sin(8 * u[0]), 1.5 * u[0] - 0.75, u[1]), -1)
+    v = torch.rand(2, 1500, generator=generator, dtype=F64)
+    floor = torch.stack((v[0], 1.5 * v[1] - 0.75, torch.zeros_like(v[0])), -1)
+    points = torch.cat((wall, floor))
+    return points + noise * torch.randn(points.shape, generator=generator, dtype=F64)
+
+
+def test_degenerate_condition_keeps_weak_directions_where_they_started(generator):
+    # Source and target are two noisy samplings of a wall over a floor; the true transform is
+    # the identity and the start is 2 cm off in x, y and z. The wall's normal (x) and the floor's
+    # (z) pin x and z, and the rotations, to the noise level; y only by a 1 mm ripple, so that a
+    # plain point-to-plane ICP moves y by whatever the noise pushes it to. With
+    # degenerate_condition the y translation stays where it started.
+    source = _wall_and_floor(generator, 0.002)
+    target = _wall_and_floor(generator, 0.002)
+    normals = icp.estimate_normals(target, 10)
+    start = torch.eye(4, dtype=F64)
+    start[:3, 3] = torch.tensor([0.02, 0.02, 0.02], dtype=F64)
+    base = dict(method="point_to_plane", max_distance=0.1, gate_scale=None, max_iterations=30)
+    kept = icp.icp(source, target, start, ICPConfig(**base, degenerate_condition=0.01), normals)
+    # x and z: 3000 pairs at 2 mm noise fix them to ~0.1 mm; 1 mm leaves 10× that
+    assert abs(float(kept.transform[0, 3])) < 1e-3 and abs(float(kept.transform[2, 3])) < 1e-3
+    # y: no step along the weak direction; y still moves a little with the constrained
+    # rotations (steps about the centroid; the weak eigenvector mixes in rotation), by at
+    # most ~0.3 mm over seeds here; a plain ICP moves it by up to the full 2 cm
+    assert abs(float(kept.transform[1, 3]) - 0.02) < 1e-3
+    plain = icp.icp(source, target, start, ICPConfig(**base), normals)
+    assert abs(float(plain.transform[0, 3])) < 1e-3 and abs(float(plain.transform[2, 3])) < 1e-3
+    # a well-conditioned alignment (a closed bumpy surface: λ_min/λ_max ≫ 0.01) is the same
+    # bit for bit with the option: no direction is weak, the plain solve is used as it is
+    points, _ = surface(1500, generator)
+    T = se3.exp(torch.tensor([0.02, -0.01, 0.03, 0.02, 0.01, -0.02], dtype=F64))
+    target = se3.act(T, points)
+    normals = icp.estimate_normals(target, 10)
+    eye = torch.eye(4, dtype=F64)
+    on = icp.icp(points, target, eye, ICPConfig(**base, degenerate_condition=0.01), normals)
+    off = icp.icp(points, target, eye, ICPConfig(**base), normals)
+    assert torch.equal(on.transform, off.transform)
+    with pytest.raises(ValueError, match="ICPConfig: argument 'degenerate_condition' needs method"):
+        ICPConfig(degenerate_condition=0.01)
+    with pytest.raises(ValueError, match="degenerate_condition"):
+        ICPConfig(method="point_to_plane", degenerate_condition=1.5)
+
+
+def test_weak_directions_kept_zeroes_only_the_weak_eigen_directions():
+    # H = S⁻¹ Q diag(λ) Qᵀ S⁻¹ with a known orthonormal Q in the lever-scaled units: the
+    # remapped step has no component along the columns of Q with λ < 0.01 λ_max and the
+    # Gauss-Newton one along the others (float64 on a 6 × 6 system: 1e-12 relative).
+    g = torch.Generator().manual_seed(3)
+    Q, _ = torch.linalg.qr(torch.randn(6, 6, generator=g, dtype=F64))
+    values = torch.tensor([1e-5, 1e-3, 0.5, 1.0, 2.0, 3.0], dtype=F64)
+    arm = torch.randn(1, 50, 3, generator=g, dtype=F64)
+    w = torch.ones(1, 50, dtype=F64)
+    lever = float(arm.square().sum(-1).mean().sqrt())
+    S = torch.diag(torch.tensor([1 / lever] * 3 + [1.0] * 3, dtype=F64))
+    Hs = Q @ torch.diag(values) @ Q.T
+    H = torch.linalg.inv(S) @ Hs @ torch.linalg.inv(S)
+    grad = torch.randn(6, 1, generator=g, dtype=F64)
+    delta = -torch.linalg.solve(H, grad).squeeze(-1)
+    out = icp._weak_directions_kept(delta[None], H[None], grad[None], arm, w, 0.01)[0]
+    scaled = torch.linalg.solve(S, out)  # δ̃ = S⁻¹ δ
+    components = Q.T @ scaled
+    expected = -(Q.T @ (S @ grad)).squeeze(-1) / values
+    zero = torch.zeros(2, dtype=F64)
+    assert torch.allclose(components[:2], zero, atol=1e-12 * float(expected.abs().max()))
+    assert torch.allclose(components[2:], expected[2:], rtol=1e-10, atol=0)
+    # no weak direction: the input step comes back unchanged
+    same = icp._weak_directions_kept(delta[None], H[None], grad[None], arm, w, 1e-7)[0]
+    assert torch.equal(same, delta)

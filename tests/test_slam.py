@@ -554,3 +554,29 @@ def test_judging_from_the_icp_lookups_equals_a_fresh_query():
             want.fitness, want.rms, want.condition, want.inliers, want.problem,
         )  # fmt: skip
         assert torch.equal(got.information, want.information)
+
+
+def test_make_depth_sequence_renders_the_surfaces_it_states():
+    # Frames are ray-cast depth images: back-projected and mapped by their pose (camera →
+    # world), every point lies on one of the scene's rectangles' planes to within the depth
+    # noise (σ = noise·z² ≤ 0.0015 · 4² = 2.4 cm at the 4 m range cap; 5σ bound) plus the
+    # millimetre quantization; the same frame renders the same bits twice.
+    from torchslam.data import make_depth_sequence
+
+    seq = make_depth_sequence(20, seed=3)
+    assert len(seq) == 20 and seq.poses.shape == (20, 4, 4)
+    image = seq.depth(5, stride=8)
+    assert image.dtype == np.uint16 and image.shape == (60, 80)
+    assert np.array_equal(image, seq.depth(5, stride=8))
+    cloud = seq.cloud(5, stride=8)
+    T = seq.poses[5]
+    world = cloud @ T[:3, :3].T + T[:3, 3]
+    table = seq.surfaces
+    normal = torch.nn.functional.normalize(torch.linalg.cross(table[:, 1], table[:, 2]), dim=-1)
+    plane = ((world[:, None, :] - table[None, :, 0]) * normal[None]).sum(-1).abs().min(1).values
+    z = cloud[:, 2]
+    assert bool((plane <= 5 * 0.0015 * z**2 + 0.001).all())
+    with pytest.raises(ValueError, match="make_depth_sequence: the path"):
+        make_depth_sequence(10, radius=3.0)
+    with pytest.raises(ValueError, match=r"SyntheticDepthSequence\.depth: argument 'index'"):
+        seq.depth(20)

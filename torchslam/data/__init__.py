@@ -7,7 +7,12 @@ checked by sha256 (``files``: :func:`fetch`)."""
 from torchslam.data.files import DATASETS, DatasetUnavailableError, fetch
 from torchslam.data.loop import LoopScene, make_loop_scene
 from torchslam.data.posegraph import SyntheticPoseGraph, make_pose_graph
-from torchslam.data.sequence import SyntheticSequence, make_sequence
+from torchslam.data.sequence import (
+    SyntheticDepthSequence,
+    SyntheticSequence,
+    make_depth_sequence,
+    make_sequence,
+)
 from torchslam.data.synthetic import BENCHMARK_CASES, SyntheticScene, benchmark_case, make_scene
 
 __all__ = [
@@ -15,11 +20,13 @@ __all__ = [
     "DATASETS",
     "DatasetUnavailableError",
     "LoopScene",
+    "SyntheticDepthSequence",
     "SyntheticPoseGraph",
     "SyntheticScene",
     "SyntheticSequence",
     "benchmark_case",
     "fetch",
+    "make_depth_sequence",
     "make_loop_scene",
     "make_pose_graph",
     "make_scene",

@@ -118,6 +118,13 @@ class ICPConfig:
     # and keep T's translation: a coarse stage that a wide gate cannot make slide along the
     # target's weakly constrained directions (odometry's wide stage, rotation mispredicted)
     rotation_only: bool = False
+    # point_to_plane only: directions of the update that the correspondences barely constrain
+    # stay where T put them (degeneracy-aware ICP; a camera facing a bare wall, a corridor):
+    # the eigen-directions of the step's normal equations, rotation scaled by the RMS lever
+    # arm (:func:`~torchslam.registration.quality.alignment_quality`'s λ_min/λ_max), whose
+    # eigenvalue is below ``degenerate_condition`` × the largest get no update. None: every
+    # direction is solved (noise then slides a frame along the weak ones)
+    degenerate_condition: float | None = None
 
     def __post_init__(self) -> None:
         fn = "ICPConfig"
@@ -160,6 +167,15 @@ class ICPConfig:
         if self.kernel_scale is not None:
             _checks.check_real(fn, "kernel_scale", self.kernel_scale, low=0.0, low_open=True)
         _checks.check_bool(fn, "rotation_only", self.rotation_only)
+        if self.degenerate_condition is not None:
+            _checks.check_real(
+                fn, "degenerate_condition", self.degenerate_condition, low=0.0, high=1.0
+            )
+            if self.method != "point_to_plane":
+                raise ValueError(
+                    f"{fn}: argument 'degenerate_condition' needs method='point_to_plane', got "
+                    f"method={self.method!r}"
+                )
         if self.rotation_only and self.method != "point_to_plane":
             raise ValueError(
                 f"{fn}: argument 'rotation_only' needs method='point_to_plane', got "
@@ -386,6 +402,7 @@ def _point_to_plane_step(
     weights: Tensor | None = None,
     residual: Tensor | None = None,
     pivot: Tensor | None = None,
+    degenerate: float | None = None,
 ) -> Tensor:
     """Increment ΔT minimizing Σ (n · (ΔT p − q))² to first order over the kept pairs, (B, 4, 4).
 
@@ -394,6 +411,7 @@ def _point_to_plane_step(
     and δ solves the Gauss–Newton normal equations JᵀJ δ = −Jᵀ r. ``residual``: the
     distances n·(p − q), (B, N), when the caller has them (:func:`_plane_distances`).
     ``pivot`` (B, 3): turn about this point only (v = 0, J = [(p − pivot) × n]).
+    ``degenerate``: ICPConfig.degenerate_condition (:func:`_weak_directions_kept`).
     """
     w = mask.to(moved.dtype)  # (B, N)
     if pivot is None:
@@ -419,7 +437,10 @@ def _point_to_plane_step(
     scale = H.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
     empty = scale <= 0
     H = torch.where(empty, eye, H + 1e-12 * scale * eye)
-    delta = -torch.linalg.solve(H, torch.where(empty, torch.zeros_like(g), g)).squeeze(-1)
+    g = torch.where(empty, torch.zeros_like(g), g)
+    delta = -torch.linalg.solve(H, g).squeeze(-1)
+    if degenerate is not None:
+        delta = _weak_directions_kept(delta, H, g, arm, w, degenerate)
     if pivot is not None:
         delta = torch.cat((delta, torch.zeros_like(delta)), -1)  # (ω, v = 0)
     # The θ-power form is the robust one bit for bit within these bounds (se3's docstring) and
@@ -429,6 +450,33 @@ def _point_to_plane_step(
     # Rotate about the centroid: Trans(c) exp(δ) Trans(−c) (step is exp's fresh tensor).
     step[:, :3, 3] = step[:, :3, 3] + centroid - (step[:, :3, :3] @ centroid[..., None]).squeeze(-1)
     return step
+
+
+def _weak_directions_kept(
+    delta: Tensor, H: Tensor, g: Tensor, arm: Tensor, w: Tensor, condition: float
+) -> Tensor:
+    """The Gauss–Newton increment ``delta`` (B, d) of H δ = −g (H (B, d, d), g (B, d, 1);
+    d = 6, or 3 turning only) with no component along the weak directions of H: in units
+    where a rotation moves the points by the weighted RMS lever arm ℓ of ``arm`` (B, N, 3)
+    (weights ``w`` (B, N)), H̃ = S H S with S = diag(1/ℓ, 1/ℓ, 1/ℓ, 1, 1, 1); its
+    eigen-directions with eigenvalue below ``condition`` × the largest get a zero step
+    (solution remapping, Zhang et al. 2016), the others their Gauss–Newton one. Rows
+    without a weak direction keep ``delta`` exactly."""
+    d = H.shape[-1]
+    total = w.sum(-1).clamp_min(torch.finfo(w.dtype).tiny)
+    lever = torch.sqrt((w * (arm * arm).sum(-1)).sum(-1) / total).clamp_min(1e-12)  # (B,)
+    scale = torch.ones(H.shape[:-1], dtype=H.dtype, device=H.device)  # (B, d)
+    scale[:, :3] = 1.0 / lever[:, None]
+    Hs = H * scale[:, :, None] * scale[:, None, :]
+    values, vectors = torch.linalg.eigh(Hs)
+    weak = values < condition * values[:, -1:]  # (B, d), ascending
+    if not bool(weak.any()):
+        return delta
+    inverse = torch.where(weak, torch.zeros_like(values), 1.0 / torch.where(weak, 1.0, values))
+    gs = (g.squeeze(-1) * scale)[..., None]  # S g
+    remapped = -(vectors @ (inverse[..., None] * (vectors.transpose(-1, -2) @ gs))).squeeze(-1)
+    remapped = remapped * scale  # δ = S δ̃
+    return torch.where(weak.any(-1, keepdim=True), remapped, delta)[:, :d]
 
 
 def _plane_distances(moved: Tensor, matched: Tensor, normals: Tensor) -> Tensor:
@@ -625,7 +673,9 @@ def _icp_loop(
             if config.kernel != "none":
                 weights = _kernel_weights(config.kernel, plane, _scale(config, rms))
             pivot = T_rows[:, :3, 3] if config.rotation_only else None
-            step = _point_to_plane_step(moved, matched, normals, mask, weights, plane, pivot)
+            step = _point_to_plane_step(
+                moved, matched, normals, mask, weights, plane, pivot, config.degenerate_condition
+            )
             T_new = step @ T_rows
         if whole:
             T = T_new  # a fresh tensor; T_rows keeps the transforms before the update

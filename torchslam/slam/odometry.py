@@ -418,6 +418,7 @@ class Odometry:
             rotation_tolerance_deg=cfg.icp_step_deg,
             translation_tolerance=cfg.icp_step_voxels * cfg.voxel,
             rotation_only=rotation_only,
+            degenerate_condition=cfg.degenerate_condition or None,
         )
         target, normals = self.map.state()
         batch = initial if initial.dim() == 3 else initial[None]
