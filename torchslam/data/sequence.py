@@ -130,16 +130,7 @@ def make_sequence(
     yaw = angle + math.pi / 2
     roll = 0.03 * np.sin(2 * angle + wobble[1])
     pitch = 0.03 * np.sin(5 * angle + wobble[2])
-    poses = np.tile(np.eye(4), (frames, 1, 1))
-    for f in range(frames):
-        cz, sz = math.cos(yaw[f]), math.sin(yaw[f])
-        cy, sy = math.cos(pitch[f]), math.sin(pitch[f])
-        cx, sx = math.cos(roll[f]), math.sin(roll[f])
-        Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-        Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-        Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-        poses[f, :3, :3] = Rz @ Ry @ Rx
-        poses[f, :3, 3] = position[f]
+    poses = _poses(position, yaw, pitch, roll)
 
     clouds = []
     for f in range(frames):
@@ -154,6 +145,28 @@ def make_sequence(
         local = local[np.linalg.norm(local, axis=1) <= max_range]
         clouds.append(torch.from_numpy(np.ascontiguousarray(local)))
     return SyntheticSequence(clouds, torch.from_numpy(poses), torch.from_numpy(table))
+
+
+def _poses(
+    position: np.ndarray,
+    yaw: np.ndarray,
+    pitch: np.ndarray,
+    roll: np.ndarray,
+    axes: np.ndarray | None = None,
+) -> np.ndarray:
+    """Frame → world poses (F, 4, 4) with R = Rz(yaw) Ry(pitch) Rx(roll) [· axes] (z up; a
+    positive pitch turns the x axis down) and translation ``position`` (F, 3)."""
+    poses = np.tile(np.eye(4), (len(position), 1, 1))
+    for f in range(len(position)):
+        cz, sz = math.cos(yaw[f]), math.sin(yaw[f])
+        cy, sy = math.cos(pitch[f]), math.sin(pitch[f])
+        cx, sx = math.cos(roll[f]), math.sin(roll[f])
+        Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+        Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+        poses[f, :3, :3] = Rz @ Ry @ Rx if axes is None else Rz @ Ry @ Rx @ axes
+        poses[f, :3, 3] = position[f]
+    return poses
 
 
 def _nearest(table: np.ndarray, point: np.ndarray) -> np.ndarray:
@@ -335,16 +348,7 @@ def make_depth_sequence(
     roll = 0.04 * np.sin(3.1 * angle + phase[4])
     # camera axes (x right, y down, z forward) in the body frame (x forward, y left, z up)
     optical = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    poses = np.tile(np.eye(4), (frames, 1, 1))
-    for f in range(frames):
-        cz, sz = math.cos(yaw[f]), math.sin(yaw[f])
-        cy, sy = math.cos(pitch[f]), math.sin(pitch[f])
-        cx, sx = math.cos(roll[f]), math.sin(roll[f])
-        Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-        Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])  # +pitch: nose down
-        Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-        poses[f, :3, :3] = Rz @ Ry @ Rx @ optical
-        poses[f, :3, 3] = position[f]
+    poses = _poses(position, yaw, pitch, roll, optical)
     H, W = (int(s) for s in size)
     K = torch.tensor([[focal, 0.0, (W - 1) / 2], [0.0, focal, (H - 1) / 2], [0.0, 0.0, 1.0]])
     return SyntheticDepthSequence(
