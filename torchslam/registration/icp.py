@@ -462,7 +462,6 @@ def _weak_directions_kept(
     eigen-directions with eigenvalue below ``condition`` × the largest get a zero step
     (solution remapping, Zhang et al. 2016), the others their Gauss–Newton one. Rows
     without a weak direction keep ``delta`` exactly."""
-    d = H.shape[-1]
     total = w.sum(-1).clamp_min(torch.finfo(w.dtype).tiny)
     lever = torch.sqrt((w * (arm * arm).sum(-1)).sum(-1) / total).clamp_min(1e-12)  # (B,)
     scale = torch.ones(H.shape[:-1], dtype=H.dtype, device=H.device)  # (B, d)
@@ -476,7 +475,7 @@ def _weak_directions_kept(
     gs = (g.squeeze(-1) * scale)[..., None]  # S g
     remapped = -(vectors @ (inverse[..., None] * (vectors.transpose(-1, -2) @ gs))).squeeze(-1)
     remapped = remapped * scale  # δ = S δ̃
-    return torch.where(weak.any(-1, keepdim=True), remapped, delta)[:, :d]
+    return torch.where(weak.any(-1, keepdim=True), remapped, delta)
 
 
 def _plane_distances(moved: Tensor, matched: Tensor, normals: Tensor) -> Tensor:
