@@ -85,6 +85,10 @@ class FrameStatus(enum.IntEnum):
     RETRIED = 2  # trusted only after a retry from a wider gate
     UNRELIABLE = 3  # no trusted alignment: the best attempt's pose
     FEW_POINTS = 4  # too few points to register: the predicted pose
+    # fits the map (overlap, RMS), but its points leave directions unconstrained (conditioning
+    # below min_condition), along which ICP kept the prediction (degenerate_condition > 0);
+    # trusted, so a keyframe when it moved: the map follows the sensor past a bare wall
+    DEGENERATE = 5
 
 
 @dataclass
@@ -118,7 +122,12 @@ class FrameInfo:
 
     @property
     def trusted(self) -> bool:
-        return self.status in (FrameStatus.FIRST, FrameStatus.TRACKED, FrameStatus.RETRIED)
+        return self.status in (
+            FrameStatus.FIRST,
+            FrameStatus.TRACKED,
+            FrameStatus.RETRIED,
+            FrameStatus.DEGENERATE,
+        )
 
 
 @dataclass
@@ -242,6 +251,7 @@ class Odometry:
         )
         self._previous: Tensor | None = None  # T_w(k−2)
         self._last: Tensor | None = None  # T_w(k−1)
+        self._velocity: Tensor | None = None  # T_w(k−2)⁻¹ T_w(k−1) of trusted frames
         # (frame points, the lookups of the last single ICP run on them), see _judge
         self._lookups: tuple[Tensor, _Matcher] | None = None
 
@@ -291,7 +301,7 @@ class Odometry:
             )  # fmt: skip
             information = torch.eye(6, dtype=torch.float64)
             self._make_keyframe(info, dense, information)
-            self._advance(pose)
+            self._advance(pose, True)
             info.seconds = time.perf_counter() - tic
             self.frames.append(info)
             return pose.clone()
@@ -304,7 +314,7 @@ class Odometry:
                 math.nan, math.nan, math.nan, 0, source.shape[0], dropped, 0.0,
                 f"{source.shape[0]} point(s) after cropping and downsampling",
             )  # fmt: skip
-            self._advance(prediction)
+            self._advance(prediction, False)
             info.seconds = time.perf_counter() - tic
             self.frames.append(info)
             return prediction.clone()
@@ -324,7 +334,7 @@ class Odometry:
         if status != FrameStatus.UNRELIABLE and self._moved_enough(pose):
             information = quality.information * (cfg.effective_points / max(quality.inliers, 1))
             self._make_keyframe(info, dense, information)
-        self._advance(pose)
+        self._advance(pose, status != FrameStatus.UNRELIABLE)
         info.seconds = time.perf_counter() - tic
         self.frames.append(info)
         return pose.clone()
@@ -375,13 +385,19 @@ class Odometry:
 
     def _predict(self) -> Tensor:
         assert self._last is not None
-        if self._previous is None or self.config.prediction == "previous":
+        if self._velocity is None or self.config.prediction == "previous":
             return self._last.clone()
         with _checks.validation(False):  # poses odometry made: rigid by construction
-            velocity = se3.compose(se3.inverse(self._previous), self._last)
-            return se3.compose(self._last, velocity)
+            return se3.compose(self._last, self._velocity)
 
-    def _advance(self, pose: Tensor) -> None:
+    def _advance(self, pose: Tensor, trusted: bool) -> None:
+        """Make ``pose`` the last one. The velocity T_(k−1)⁻¹T_k of the prediction is
+        measured on trusted frames only: an unreliable or unregistered frame keeps the one
+        before it, so that a failed alignment (a sensor losing the map) is not predicted
+        again, faster, at the next frame."""
+        if self._last is not None and trusted:
+            with _checks.validation(False):  # poses odometry made: rigid by construction
+                self._velocity = se3.compose(se3.inverse(self._last), pose)
         self._previous, self._last = self._last, pose
 
     def _moved_enough(self, pose: Tensor) -> bool:
@@ -524,8 +540,24 @@ class Odometry:
             attempts.append((refined.transform, q, steps))
             if q.trusted:
                 return refined.transform, q, steps, FrameStatus.RETRIED, 0
+        for attempt in attempts:  # no trusted one: the first that only lacks conditioning
+            if self._degenerate_only(attempt[1]):
+                return attempt[0], attempt[1], attempt[2], FrameStatus.DEGENERATE, 0
         best = max(attempts, key=lambda a: (a[1].fitness, -a[1].rms))
         return best[0], best[1], best[2], FrameStatus.UNRELIABLE, 0
+
+    def _degenerate_only(self, quality: AlignmentQuality) -> bool:
+        """Whether an untrusted alignment fits the map (overlap and RMS pass) and fails only
+        the conditioning test, while ICP keeps the prediction along the weak directions
+        (``degenerate_condition`` > 0): a view of a bare wall and floor, not a wrong fit."""
+        t = self._thresholds
+        return (
+            self.config.degenerate_condition > 0
+            and quality.inliers >= 6
+            and quality.fitness >= t.min_fitness
+            and (t.max_rms is None or quality.rms <= t.max_rms)
+            and quality.condition < t.min_condition
+        )
 
     def _make_keyframe(self, info: FrameInfo, source: Tensor, information: Tensor) -> None:
         cfg = self.config
