@@ -249,9 +249,8 @@ class Odometry:
         self._thresholds = QualityThresholds(
             config.min_fitness, config.max_rms_voxels * config.voxel, config.min_condition
         )
-        self._previous: Tensor | None = None  # T_w(k−2)
         self._last: Tensor | None = None  # T_w(k−1)
-        self._velocity: Tensor | None = None  # T_w(k−2)⁻¹ T_w(k−1) of trusted frames
+        self._velocity: Tensor | None = None  # T_w(k−2)⁻¹ T_w(k−1), of trusted frames only
         # (frame points, the lookups of the last single ICP run on them), see _judge
         self._lookups: tuple[Tensor, _Matcher] | None = None
 
@@ -398,7 +397,7 @@ class Odometry:
         if self._last is not None and trusted:
             with _checks.validation(False):  # poses odometry made: rigid by construction
                 self._velocity = se3.compose(se3.inverse(self._last), pose)
-        self._previous, self._last = self._last, pose
+        self._last = pose
 
     def _moved_enough(self, pose: Tensor) -> bool:
         cfg = self.config
